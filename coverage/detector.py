@@ -1,0 +1,173 @@
+"""ChArUco detection: image -> Detection, with the print's quirks found automatically.
+
+Uses OpenCV 5's `CharucoDetector.detectBoard` with `CORNER_REFINE_SUBPIX` (CONTOUR does no
+refinement of the chessboard corners that matter here) and `board.matchImagePoints`.
+Legacy-pattern prints (OpenCV < 4.6 boards with an even number of rows) and inverted
+(white-on-black) prints are found on the first frames that show markers and then kept, so the
+per-frame cost stays one `detectBoard` call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.board import DICTIONARY_NAMES, BoardSpec, dictionary_id
+from calibcoach.drivers.errors import BoardError
+
+
+@dataclass(frozen=True, slots=True)
+class Detection:
+    """The board as seen in one frame."""
+
+    corners_px: np.ndarray  # (N, 2) float32 ChArUco corner positions, pixels
+    ids: np.ndarray  # (N,) int32 ChArUco corner ids, 0 .. corner_count-1
+    object_points_m: np.ndarray  # (N, 3) float32 the same corners in the board frame, metres
+    marker_ids: np.ndarray  # (M,) int32 ArUco marker ids found (M may be > 0 with N == 0)
+
+    @property
+    def corner_count(self) -> int:
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty(marker_ids: np.ndarray | None = None) -> Detection:
+        return Detection(
+            corners_px=np.zeros((0, 2), np.float32),
+            ids=np.zeros((0,), np.int32),
+            object_points_m=np.zeros((0, 3), np.float32),
+            marker_ids=np.zeros((0,), np.int32) if marker_ids is None else marker_ids,
+        )
+
+
+def _aruco_parameters(*, inverted: bool) -> cv2.aruco.DetectorParameters:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.detectInvertedMarker = inverted
+    return params
+
+
+class CharucoBoardDetector:
+    """Detects one board spec; settles legacy/inverted on the first frames that show markers.
+
+    `variant_found` is None until the print's pattern and polarity are known; then it says which
+    (e.g. "inverted print") and `spec` carries the settled values.
+    """
+
+    def __init__(self, spec: BoardSpec) -> None:
+        self.spec = spec
+        self._settled = spec.legacy is not None and spec.inverted is not None
+        self._detector = self._make(legacy=bool(spec.legacy), inverted=bool(spec.inverted))
+        self._board = spec.cv_board(legacy=bool(spec.legacy))
+        self.variant_found: str | None = None
+
+    def _make(self, *, legacy: bool, inverted: bool) -> cv2.aruco.CharucoDetector:
+        board = self.spec.cv_board(legacy=legacy)
+        return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), _aruco_parameters(inverted=inverted))
+
+    @property
+    def settled(self) -> bool:
+        return self._settled
+
+    def detect(self, grey: np.ndarray) -> Detection:
+        """Detect the board in a (H, W) uint8 image."""
+        if grey.ndim != 2 or grey.dtype != np.uint8:
+            raise ValueError(f"detect wants a (H, W) uint8 grey image, got {grey.shape} {grey.dtype}")
+        if not self._settled:
+            return self._detect_and_settle(grey)
+        return self._run(self._detector, self._board, grey)
+
+    @staticmethod
+    def _run(detector: cv2.aruco.CharucoDetector, board: cv2.aruco.CharucoBoard, grey: np.ndarray) -> Detection:
+        corners, ids, _marker_corners, marker_ids = detector.detectBoard(grey)
+        mids = np.zeros((0,), np.int32) if marker_ids is None else np.asarray(marker_ids, np.int32).reshape(-1)
+        if ids is None or len(ids) == 0:
+            return Detection.empty(mids)
+        corners = np.asarray(corners, np.float32).reshape(-1, 2)
+        ids = np.asarray(ids, np.int32).reshape(-1)
+        obj, _img = board.matchImagePoints(corners.reshape(-1, 1, 2), ids.reshape(-1, 1))
+        return Detection(corners, ids, np.asarray(obj, np.float32).reshape(-1, 3), mids)
+
+    def _detect_and_settle(self, grey: np.ndarray) -> Detection:
+        """Try the print variants the spec leaves open; keep the one that finds most corners."""
+        legacies = [self.spec.legacy] if self.spec.legacy is not None else [False, True]
+        if self.spec.squares_y % 2 == 1:
+            legacies = legacies[:1]  # an odd row count prints identically in both patterns
+        inverts = [self.spec.inverted] if self.spec.inverted is not None else [False, True]
+        best: tuple[int, int, bool, bool, Detection] | None = None
+        for inverted in inverts:
+            for legacy in legacies:
+                det = self._run(self._make(legacy=bool(legacy), inverted=bool(inverted)), self.spec.cv_board(legacy=bool(legacy)), grey)
+                score = (det.corner_count, det.marker_ids.size)
+                if best is None or score > best[:2]:
+                    best = (*score, bool(legacy), bool(inverted), det)
+        assert best is not None
+        corners, markers, legacy, inverted, det = best
+        if corners >= 6:
+            self._settle(legacy=legacy, inverted=inverted)
+        return det
+
+    def _settle(self, *, legacy: bool, inverted: bool) -> None:
+        self.spec = self.spec.with_detected(legacy=legacy, inverted=inverted)
+        self._detector = self._make(legacy=legacy, inverted=inverted)
+        self._board = self.spec.cv_board(legacy=legacy)
+        self._settled = True
+        found = [name for name, on in (("legacy pattern", legacy), ("inverted print", inverted)) if on]
+        self.variant_found = ", ".join(found) if found else "standard pattern"
+
+
+def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardError | None:
+    """Explain why `spec` finds no corners in frames that may show some other board.
+
+    Tries, on a few sample frames: other dictionaries, swapped width/height, legacy pattern,
+    inverted polarity, and marker ids beyond the board's range. Returns an error whose message says
+    what was seen and what to pass instead, or None when nothing board-like is visible at all.
+    """
+    if not greys:
+        return None
+    own = dictionary_id(spec.dictionary)
+    counts: dict[str, int] = {}
+    own_ids: set[int] = set()
+    for name in DICTIONARY_NAMES:
+        detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), _aruco_parameters(inverted=True))
+        total = 0
+        for grey in greys:
+            _corners, ids, _rej = detector.detectMarkers(grey)
+            if ids is not None:
+                total += len(ids)
+                if getattr(cv2.aruco, name) == own:
+                    own_ids.update(int(i) for i in np.asarray(ids).reshape(-1))
+        counts[name] = total
+    seen = max(counts, key=lambda n: counts[n])
+    if counts[seen] == 0:
+        return None
+    if counts.get(spec.dictionary, 0) < 0.5 * counts[seen] and seen != spec.dictionary:
+        # Dictionaries share their first codes (4X4_50 is a prefix of 4X4_1000), so name the family seen.
+        return BoardError(
+            f"the images show ArUco markers of {seen} ({counts[seen]} found), not {spec.dictionary}; "
+            f"pass --dictionary {seen} (or the board file that matches the print)"
+        )
+    markers_on_board = (spec.squares_x * spec.squares_y) // 2
+    if own_ids and max(own_ids) >= markers_on_board:
+        return BoardError(
+            f"the images show marker ids up to {max(own_ids)}, but a {spec.squares_x}x{spec.squares_y} board uses ids "
+            f"0-{markers_on_board - 1}; the print has more squares: pass the right --squares WxH"
+        )
+    candidates = [
+        (f"--squares {spec.squares_y}x{spec.squares_x} (width and height swapped)",
+         BoardSpec(spec.squares_y, spec.squares_x, spec.square_mm, spec.marker_mm, spec.dictionary, spec.legacy, spec.inverted)),
+        ("--legacy (a board printed by OpenCV < 4.6)",
+         BoardSpec(spec.squares_x, spec.squares_y, spec.square_mm, spec.marker_mm, spec.dictionary, not bool(spec.legacy), spec.inverted)),
+    ]
+    for advice, candidate in candidates:
+        detector = CharucoBoardDetector(candidate)
+        if any(detector.detect(g).corner_count >= 6 for g in greys):
+            return BoardError(
+                f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; "
+                f"it matches with {advice}"
+            )
+    return BoardError(
+        f"markers of {spec.dictionary} are visible (ids {sorted(own_ids)[:12]}) but they never form the corners of a "
+        f"{spec.squares_x}x{spec.squares_y} board; check --squares, --square-mm/--marker-mm and the dictionary"
+    )

@@ -1,0 +1,91 @@
+"""The frame-source boundary: what every source (replay, simulator, V4L2, DepthAI) delivers.
+
+A `FrameSource` is iterated once and yields `Frame`s in capture order. Everything above this
+boundary (detection, coverage, solving, outputs) is identical for live cameras and recordings,
+which is what lets the tests exercise the live pipeline by replaying recorded sessions.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One captured image and what was known about the camera when it was taken."""
+
+    index: int  # position in the source's stream, 0-based, counting frames that could not be decoded too
+    timestamp_ns: int  # capture time; sources without clocks use index / fps
+    image: np.ndarray  # (H, W) uint8 grey or (H, W, 3) uint8 BGR
+    name: str = ""  # file name for folder sources, "" otherwise
+    controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))  # focus etc.
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+    def grey(self) -> np.ndarray:
+        """The image as (H, W) uint8 grey, converting BGR once when needed."""
+        if self.image.ndim == 2:
+            return self.image
+        import cv2
+
+        return cv2.cvtColor(self.image, cv2.COLOR_BGR2GRAY)
+
+
+@dataclass(frozen=True, slots=True)
+class SourceInfo:
+    """What a source says about itself before the first frame."""
+
+    description: str  # human-readable, e.g. "video file demo.avi (1280x720, 30 fps, 600 frames)"
+    kind: str  # "video" | "folder" | "recording" | "sim" | "v4l2" | "depthai"
+    camera_id: str = ""
+    image_size: tuple[int, int] | None = None  # (width, height) when known up front
+    fps: float | None = None  # nominal frame rate when known
+    frame_count: int | None = None  # total frames when known (files), None for live cameras
+    controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    board: Mapping[str, Any] | None = None  # board description stored with a recording, if any
+
+
+@dataclass(frozen=True, slots=True)
+class SkippedFrame:
+    """A frame a source could not deliver (truncated file, decode error), reported, not fatal."""
+
+    index: int
+    name: str
+    reason: str
+
+
+class FrameSource(abc.ABC):
+    """A stream of frames. Iterate once; use as a context manager so devices are released."""
+
+    def __init__(self) -> None:
+        self.skipped: list[SkippedFrame] = []  # frames the source could not decode, with reasons
+
+    @property
+    @abc.abstractmethod
+    def info(self) -> SourceInfo:
+        """Description, size and frame rate, known before iteration starts."""
+
+    @abc.abstractmethod
+    def frames(self) -> Iterator[Frame]:
+        """Yield frames in capture order. Unreadable frames go to `self.skipped`, not exceptions."""
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
+
+    def close(self) -> None:  # noqa: B027 - optional hook, most replay sources hold nothing open
+        """Release the device or file handle."""
+
+    def __enter__(self) -> FrameSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,233 @@
+"""The camera model: intrinsics plus one of three distortion models, with project/unproject.
+
+It sits in the bottom layer because every layer needs it: the simulated camera renders through it,
+the coverage map estimates board poses with it, the solver produces it and the outputs write it.
+
+Models (OpenCV's conventions; pixel (0, 0) is the centre of the top-left pixel):
+- "pinhole":  5-parameter Brown-Conrady (k1, k2, p1, p2, k3), ordinary lenses.
+- "rational": 8-parameter rational model (k1, k2, p1, p2, k3, k4, k5, k6), beyond ~90 deg field of view.
+- "fisheye":  Kannala-Brandt (k1..k4 on theta), `cv2.fisheye`, 120 deg and beyond.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+MODELS = ("pinhole", "rational", "fisheye")
+COEFF_COUNT = {"pinhole": 5, "rational": 8, "fisheye": 4}
+ROS_DISTORTION_NAME = {"pinhole": "plumb_bob", "rational": "rational_polynomial", "fisheye": "equidistant"}
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+
+@dataclass(frozen=True, slots=True)
+class CameraModel:
+    """Intrinsics of one camera at one resolution."""
+
+    model: str  # "pinhole" | "rational" | "fisheye"
+    camera_matrix: np.ndarray  # (3, 3) float64, fx fy in pixels, cx cy in pixels
+    dist_coeffs: np.ndarray  # (5,) pinhole, (8,) rational, (4,) fisheye; float64
+    image_size: tuple[int, int]  # (width, height) pixels
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        K = np.asarray(self.camera_matrix, np.float64).reshape(3, 3)
+        D = np.asarray(self.dist_coeffs, np.float64).reshape(-1)
+        n = COEFF_COUNT[self.model]
+        if D.size < n:
+            D = np.concatenate([D, np.zeros(n - D.size)])
+        elif D.size > n:
+            if np.any(D[n:] != 0):
+                raise ValueError(f"{self.model} model takes {n} distortion coefficients, got {D.size} with non-zero extras")
+            D = D[:n]
+        object.__setattr__(self, "camera_matrix", K)
+        object.__setattr__(self, "dist_coeffs", D)
+        object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
+
+    # --- construction -------------------------------------------------------------------------
+    @staticmethod
+    def from_fov(image_size: tuple[int, int], hfov_deg: float, model: str = "pinhole") -> CameraModel:
+        """A distortion-free guess from a horizontal field of view (bootstraps pose estimates)."""
+        w, h = image_size
+        if model == "fisheye":
+            f = (w / 2.0) / np.deg2rad(hfov_deg / 2.0)  # equidistant: r = f * theta
+        else:
+            f = (w / 2.0) / np.tan(np.deg2rad(min(hfov_deg, 170.0) / 2.0))
+        K = np.array([[f, 0, (w - 1) / 2.0], [0, f, (h - 1) / 2.0], [0, 0, 1]], np.float64)
+        return CameraModel(model, K, np.zeros(COEFF_COUNT[model]), image_size)
+
+    # --- geometry -----------------------------------------------------------------------------
+    @property
+    def fx(self) -> float:
+        return float(self.camera_matrix[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.camera_matrix[1, 1])
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return float(self.camera_matrix[0, 2]), float(self.camera_matrix[1, 2])
+
+    def opencv_dist(self) -> np.ndarray:
+        """Distortion as OpenCV's non-fisheye calls want it: (1, 5) or (1, 8)."""
+        return self.dist_coeffs.reshape(1, -1)
+
+    def project(self, points_cam: np.ndarray, rvec: np.ndarray | None = None, tvec: np.ndarray | None = None) -> np.ndarray:
+        """Project (N, 3) points (camera frame, or board frame with rvec/tvec) to (N, 2) float64 pixels."""
+        pts = np.asarray(points_cam, np.float64).reshape(-1, 3)
+        r = np.zeros(3) if rvec is None else np.asarray(rvec, np.float64).reshape(3)
+        t = np.zeros(3) if tvec is None else np.asarray(tvec, np.float64).reshape(3)
+        if pts.shape[0] == 0:
+            return np.zeros((0, 2))
+        if self.model == "fisheye":
+            out, _ = cv2.fisheye.projectPoints(pts.reshape(1, -1, 3), r.reshape(1, 1, 3), t.reshape(1, 1, 3), self.camera_matrix, self.dist_coeffs)
+        else:
+            out, _ = cv2.projectPoints(pts, r, t, self.camera_matrix, self.opencv_dist())
+        return out.reshape(-1, 2)
+
+    def unproject(self, pixels: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 3) unit rays in the camera frame (z forward).
+
+        OpenCV's fixed-point `undistortPoints` diverges near the corners of strongly distorted
+        lenses (a real 93 deg webcam, k1 = -0.38, misses its own corner by 144 px), so this inverts
+        the radial profile by bisection on its monotonic branch and polishes with Newton steps on
+        the full model (tangential terms included).
+        """
+        px = np.asarray(pixels, np.float64).reshape(-1, 2)
+        if px.shape[0] == 0:
+            return np.zeros((0, 3))
+        K = self.camera_matrix
+        yn = (px[:, 1] - K[1, 2]) / K[1, 1]
+        xn = (px[:, 0] - K[0, 2] - K[0, 1] * yn) / K[0, 0]
+        target = np.stack([xn, yn], axis=1)
+        if self.model == "fisheye":
+            theta = _invert_monotonic(lambda t: _fisheye_theta_d(self.dist_coeffs, t), np.hypot(xn, yn), np.pi * 0.999)
+            r_d = np.hypot(xn, yn)
+            scale = np.divide(np.sin(theta), r_d, out=np.ones_like(r_d), where=r_d > 1e-12)
+            rays = np.stack([xn * scale, yn * scale, np.cos(theta)], axis=1)
+            return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        D = self.dist_coeffs
+        r_fold = _fold_radius(lambda r: r * _radial_gain(D, r))
+        r_d = np.hypot(xn, yn)
+        r_u = _invert_monotonic(lambda r: r * _radial_gain(D, r), r_d, r_fold)
+        xy = target * np.divide(r_u, r_d, out=np.ones_like(r_d), where=r_d > 1e-12)[:, None]
+        # Pixels beyond the fold cannot be reached by the model at all (an over-fitted k3 does that
+        # inside the image); they keep the fold's radius instead of sending Newton to infinity.
+        reachable = r_d <= r_fold * _radial_gain(D, np.array(r_fold)) + 1e-12
+        xy = np.where(reachable[:, None], self._polish(D, xy, target), xy)
+        rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    @staticmethod
+    def _polish(D: np.ndarray, xy: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Newton steps on the full distortion model (tangential included) from a radial solution."""
+        for _ in range(8):  # Newton on the full model; tangential terms are small, so few steps suffice
+            f0 = _distort(D, xy) - target
+            eps = 1e-7
+            jx = (_distort(D, xy + [eps, 0]) - _distort(D, xy - [eps, 0])) / (2 * eps)
+            jy = (_distort(D, xy + [0, eps]) - _distort(D, xy - [0, eps])) / (2 * eps)
+            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+            det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+            dx = (jy[:, 1] * f0[:, 0] - jy[:, 0] * f0[:, 1]) / det
+            dy = (-jx[:, 1] * f0[:, 0] + jx[:, 0] * f0[:, 1]) / det
+            step = np.stack([dx, dy], axis=1)
+            step = np.where(np.isfinite(step), step, 0.0)
+            xy = xy - np.clip(step, -0.1, 0.1)
+            if np.max(np.abs(f0)) < 1e-14:
+                break
+        return xy
+
+    def field_of_view_deg(self) -> tuple[float, float]:
+        """(horizontal, vertical) field of view through the image's edge midpoints, degrees."""
+        w, h = self.image_size
+        cx, cy = self.principal_point
+        edges = np.array([[-0.5, cy], [w - 0.5, cy], [cx, -0.5], [cx, h - 0.5]])
+        rays = self.unproject(edges)
+        angles = np.degrees(np.arccos(np.clip(rays[:, 2], -1, 1)))
+        return float(angles[0] + angles[1]), float(angles[2] + angles[3])
+
+    # --- resolution changes -------------------------------------------------------------------
+    def resized(self, new_size: tuple[int, int]) -> CameraModel:
+        """The same lens after a uniform resize of the whole image to `new_size` (width, height).
+
+        fx, fy scale by the factor; the principal point scales about the image's outer corner, i.e.
+        (c + 0.5) * s - 0.5, because pixel (0, 0) is a pixel's centre (cv2.resize maps areas the
+        same way). Distortion coefficients live in normalised coordinates and do not change.
+        """
+        w, h = self.image_size
+        sx, sy = new_size[0] / w, new_size[1] / h
+        if abs(sx - sy) > 1e-3 * max(sx, sy):
+            raise ValueError(
+                f"resizing {w}x{h} to {new_size[0]}x{new_size[1]} changes the aspect ratio (x {sx:.4f}, y {sy:.4f}); "
+                "crop first (--crop) so that the resize is uniform"
+            )
+        K = self.camera_matrix.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 1] *= sx
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return CameraModel(self.model, K, self.dist_coeffs.copy(), (int(new_size[0]), int(new_size[1])))
+
+    def cropped(self, x: int, y: int, width: int, height: int) -> CameraModel:
+        """The same lens seen through a crop whose top-left pixel is (x, y): the principal point shifts."""
+        w, h = self.image_size
+        if x < 0 or y < 0 or width <= 0 or height <= 0 or x + width > w or y + height > h:
+            raise ValueError(f"crop {x},{y},{width},{height} does not fit inside the {w}x{h} image")
+        K = self.camera_matrix.copy()
+        K[0, 2] -= x
+        K[1, 2] -= y
+        return CameraModel(self.model, K, self.dist_coeffs.copy(), (int(width), int(height)))
+
+
+# --- distortion math in numpy (vectorised, used by unproject) -----------------------------------
+
+
+def _radial_gain(D: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Brown-Conrady / rational radial factor at undistorted normalised radius r."""
+    r2 = r * r
+    k = np.zeros(8)
+    k[: D.size] = D
+    num = 1 + k[0] * r2 + k[1] * r2**2 + k[4] * r2**3
+    den = 1 + k[5] * r2 + k[6] * r2**2 + k[7] * r2**3
+    return num / den
+
+
+def _distort(D: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) undistorted normalised -> distorted normalised coordinates (OpenCV's formulas)."""
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    g = _radial_gain(D, np.sqrt(r2))
+    p1, p2 = D[2], D[3]
+    xd = x * g + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=1)
+
+
+def _fisheye_theta_d(D: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    t2 = theta * theta
+    return theta * (1 + D[0] * t2 + D[1] * t2**2 + D[2] * t2**3 + D[3] * t2**4)
+
+
+def _fold_radius(profile, r_max: float = 20.0) -> float:
+    """Where a radial profile stops increasing (beyond it the lens model folds back on itself)."""
+    r = np.linspace(0.0, r_max, 4001)
+    values = profile(r)
+    falling = np.nonzero(np.diff(values) <= 0)[0]
+    return float(r[falling[0]]) if falling.size else r_max
+
+
+def _invert_monotonic(profile, targets: np.ndarray, upper: float) -> np.ndarray:
+    """Solve profile(x) = target for x in [0, upper] by bisection (profile increasing there)."""
+    lo = np.zeros_like(targets)
+    hi = np.full_like(targets, upper)
+    for _ in range(64):
+        mid = 0.5 * (lo + hi)
+        below = profile(mid) < targets
+        lo = np.where(below, mid, lo)
+        hi = np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
