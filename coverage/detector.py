@@ -78,8 +78,7 @@ class CharucoBoardDetector:
             return self._detect_and_settle(grey)
         return self._run(self._detector, self._board, grey)
 
-    @staticmethod
-    def _run(detector: cv2.aruco.CharucoDetector, board: cv2.aruco.CharucoBoard, grey: np.ndarray) -> Detection:
+    def _run(self, detector: cv2.aruco.CharucoDetector, board: cv2.aruco.CharucoBoard, grey: np.ndarray) -> Detection:
         corners, ids, _marker_corners, marker_ids = detector.detectBoard(grey)
         mids = np.zeros((0,), np.int32) if marker_ids is None else np.asarray(marker_ids, np.int32).reshape(-1)
         if ids is None or len(ids) == 0:
@@ -90,21 +89,31 @@ class CharucoBoardDetector:
         return Detection(corners, ids, np.asarray(obj, np.float32).reshape(-1, 3), mids)
 
     def _detect_and_settle(self, grey: np.ndarray) -> Detection:
-        """Try the print variants the spec leaves open; keep the one that finds most corners."""
+        """Try the print variants the spec leaves open; settle on the first that clearly works.
+
+        The plain variant goes first and wins ties: inverted-marker mode also finds normal markers
+        (sometimes one more), so a variant is taken only when it finds clearly more corners than
+        the plain one, or the plain one finds too few to use.
+        """
         legacies = [self.spec.legacy] if self.spec.legacy is not None else [False, True]
         if self.spec.squares_y % 2 == 1:
             legacies = legacies[:1]  # an odd row count prints identically in both patterns
         inverts = [self.spec.inverted] if self.spec.inverted is not None else [False, True]
-        best: tuple[int, int, bool, bool, Detection] | None = None
-        for inverted in inverts:
-            for legacy in legacies:
-                det = self._run(self._make(legacy=bool(legacy), inverted=bool(inverted)), self.spec.cv_board(legacy=bool(legacy)), grey)
-                score = (det.corner_count, det.marker_ids.size)
-                if best is None or score > best[:2]:
-                    best = (*score, bool(legacy), bool(inverted), det)
+        variants = [(bool(legacy), bool(inverted)) for inverted in inverts for legacy in legacies]
+        best: tuple[bool, bool, Detection] | None = None
+        for legacy, inverted in variants:
+            det = self._run(self._make(legacy=legacy, inverted=inverted), self.spec.cv_board(legacy=legacy), grey)
+            if best is None:
+                best = (legacy, inverted, det)
+                continue
+            plain = best[2].corner_count
+            if det.corner_count >= 6 and (plain < 6 or det.corner_count > 1.5 * plain):
+                best = (legacy, inverted, det)
+            elif det.corner_count == best[2].corner_count == 0 and det.marker_ids.size > best[2].marker_ids.size:
+                best = (legacy, inverted, det)  # no corners anywhere: keep the richer marker list for diagnosis
         assert best is not None
-        corners, markers, legacy, inverted, det = best
-        if corners >= 6:
+        legacy, inverted, det = best
+        if det.corner_count >= 6:
             self._settle(legacy=legacy, inverted=inverted)
         return det
 

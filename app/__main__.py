@@ -1,0 +1,3 @@
+from calibcoach.app.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,129 @@
+"""The `calibcoach` command line. The only place that prints errors and chooses exit codes.
+
+Exit codes: 0 success, 2 a problem the user can fix (the message says how), 3 a calibration was
+computed but is not trustworthy (coverage or uncertainty insufficient), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.errors import BoardError, CalibcoachError
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1280x720, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"sizes must be positive, got {text!r}")
+    return w, h
+
+
+def _crop(text: str) -> tuple[int, int, int, int]:
+    try:
+        x, y, w, h = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected x,y,width,height such as 0,60,1280,600, got {text!r}") from None
+    return x, y, w, h
+
+
+def add_board_arguments(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("board (default: 8x11 squares, DICT_5X5_100, 30.01 mm squares, 22.01 mm markers)")
+    g.add_argument("--board", type=Path, help="TOML file describing the board (squares_x, squares_y, square_mm, marker_mm, dictionary)")
+    g.add_argument("--squares", type=_size, help="squares across x down, e.g. 8x11")
+    g.add_argument("--square-mm", type=float, help="measured square side in mm")
+    g.add_argument("--marker-mm", type=float, help="measured marker side in mm")
+    g.add_argument("--dictionary", help="ArUco dictionary, e.g. DICT_5X5_100")
+    g.add_argument("--legacy", action="store_true", default=None, help="board printed by OpenCV < 4.6 (default: detected)")
+    g.add_argument("--inverted", action="store_true", default=None, help="white-on-black print (default: detected)")
+
+
+def board_from_args(args: argparse.Namespace) -> BoardSpec:
+    base = BoardSpec.from_toml(args.board) if args.board else BoardSpec()
+    values = base.to_dict()
+    if args.squares:
+        values["squares_x"], values["squares_y"] = args.squares
+    if args.square_mm is not None:
+        values["square_mm"] = args.square_mm
+        if args.marker_mm is None and not args.board:
+            raise BoardError("--square-mm without --marker-mm: pass the measured marker size too (e.g. --marker-mm 22.01)")
+    if args.marker_mm is not None:
+        values["marker_mm"] = args.marker_mm
+    if args.dictionary:
+        values["dictionary"] = args.dictionary
+    if args.legacy:
+        values["legacy"] = True
+    if args.inverted:
+        values["inverted"] = True
+    return BoardSpec.from_dict(values)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="calibcoach",
+        description="Camera calibration capture assistant: guides a ChArUco capture and calibrates when the data is good enough.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    cal = sub.add_parser("calibrate", help="calibrate from a video file, a folder of images or a calibcoach recording")
+    cal.add_argument("source", help="video file (.avi/.mp4/.mkv), folder of images, or recording folder")
+    cal.add_argument("--out", type=Path, required=True, help="output folder")
+    cal.add_argument("--model", choices=("auto", "pinhole", "rational", "fisheye"), default="auto",
+                     help="distortion model (auto: field of view + cross-validation)")
+    cal.add_argument("--accept-partial", action="store_true",
+                     help="write camera_matrix.npy/dist_coeffs.npy even when coverage or uncertainty is insufficient")
+    cal.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
+    cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
+    cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    cal.add_argument("--quiet", action="store_true", help="no progress line")
+    add_board_arguments(cal)
+
+    sc = sub.add_parser("scale", help="adapt a calibration to a resized and/or cropped image")
+    sc.add_argument("calibration", type=Path, help="calibration.json, calibration.yaml, camera_info.yaml or a folder of .npy files")
+    sc.add_argument("--to", type=_size, help="new image size after a uniform resize, e.g. 640x360")
+    sc.add_argument("--crop", type=_crop, help="crop x,y,width,height applied BEFORE the resize")
+    sc.add_argument("--out", type=Path, required=True, help="output folder")
+
+    bd = sub.add_parser("board", help="write the board at true physical scale (PDF, SVG or PNG)")
+    bd.add_argument("--out", type=Path, required=True, help="board.pdf, board.svg or board.png")
+    bd.add_argument("--dpi", type=int, default=300, help="PNG resolution (default 300)")
+    add_board_arguments(bd)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "calibrate":
+            from calibcoach.app.commands import calibrate_command
+
+            return calibrate_command(args, board_from_args(args), argv=sys.argv if argv is None else ["calibcoach", *argv])
+        if args.command == "scale":
+            from calibcoach.app.commands import scale_command
+
+            return scale_command(args)
+        if args.command == "board":
+            from calibcoach.app.outputs.board_print import write_board
+
+            spec = board_from_args(args)
+            write_board(args.out, spec, **({"dpi": args.dpi} if args.out.suffix.lower() == ".png" else {}))
+            print(f"wrote {args.out}: {spec.describe()} -- print at 100% (actual size), then measure a square and a marker")
+            return 0
+    except CalibcoachError as exc:
+        print(f"calibcoach: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("calibcoach: interrupted", file=sys.stderr)
+        return 130
+    parser.error(f"unknown command {args.command}")
+    return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,138 @@
+"""What each CLI command does, between argument parsing (cli.py) and the stages."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from calibcoach.app.outputs.report import write_session_outputs
+from calibcoach.app.replay import run_replay
+from calibcoach.app.session import FrameOutcome, SessionSettings
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.select import SelectorSettings
+from calibcoach.drivers.base import Frame
+from calibcoach.drivers.errors import CalibcoachError
+from calibcoach.drivers.replay import open_source
+
+
+class ProgressLine:
+    """One status line, rewritten in place on a terminal and printed every few seconds otherwise."""
+
+    def __init__(self, total: int | None, *, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self._last = 0.0
+        self._start = time.perf_counter()
+        self._last_guidance = ""
+
+    def __call__(self, outcome: FrameOutcome, frame: Frame) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if now - self._last < (0.1 if self.tty else 5.0) and not outcome.progress.done:
+            return
+        self._last = now
+        p = outcome.progress
+        fps = p.frames_seen / max(now - self._start, 1e-6)
+        of = f"/{self.total}" if self.total else ""
+        unc = f"{p.uncertainty_p95_px:.3f}" if p.uncertainty_p95_px is not None else "--"
+        line = (f"frame {outcome.frame_index + 1}{of}  kept {p.frames_accepted}  coverage {p.coverage * 100:3.0f}%  "
+                f"uncertainty p95 {unc}/{p.uncertainty_target_px:.3f} px  {fps:4.0f} fps  last: {outcome.decision.reason}")
+        if self.tty:
+            print("\r" + line[:160].ljust(160), end="", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr, flush=True)
+        if not outcome.guidance.coverage_complete and outcome.guidance.sentence != self._last_guidance and not self.tty:
+            self._last_guidance = outcome.guidance.sentence
+            print(f"  next: {outcome.guidance.sentence}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            print(file=sys.stderr)
+
+
+def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
+    source = open_source(args.source)
+    info = source.info
+    settings = SessionSettings(
+        model=args.model,
+        # A folder of photos that fits the frame budget was chosen by a person: keep every usable one.
+        selector=SelectorSettings(
+            max_frames=args.max_frames,
+            keep_all_usable=info.kind == "folder" and (info.frame_count or 0) <= args.max_frames,
+        ),
+        stop_when_done=not args.no_stop,
+        use_motion_gate=info.kind != "folder",
+    )
+    if info.board and not (args.board or args.squares):
+        board = BoardSpec.from_dict(dict(info.board))  # a recording knows its board
+    print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)
+    progress = ProgressLine(info.frame_count, enabled=not args.quiet)
+    with source:
+        try:
+            session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=progress)
+        finally:
+            progress.close()
+    if stats.variant_found and stats.variant_found != "standard pattern":
+        print(f"calibcoach: detected {stats.variant_found}", file=sys.stderr)
+    for skipped in source.skipped[:10]:
+        print(f"calibcoach: skipped frame {skipped.index} {skipped.name}: {skipped.reason}", file=sys.stderr)
+    why_stopped = (
+        "interrupted: solving with the frames kept so far" if stats.interrupted
+        else "stop rule met (coverage complete, uncertainty on target)" if stats.stopped_early
+        else "end of source"
+    )
+    print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}); "
+          f"kept {len(session.views)}; solving...", file=sys.stderr)
+    result = session.finish()
+    rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])
+                         if n and reason != "accepted")
+    added, reserve = session.budget_fill
+    print(f"calibcoach: rejected {rejected or 'nothing'}; the final solve also took {added} of {reserve} usable "
+          "frames held in reserve (highest information first)", file=sys.stderr)
+    written = write_session_outputs(
+        args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
+        replay_seconds=stats.seconds, frames_read=stats.frames_read, stopped_early=stats.stopped_early,
+    )
+    cal, verdict = result.calibration, result.verdict
+    K = cal.camera.camera_matrix
+    print(
+        f"{verdict.grade.upper()}: {cal.camera.model} model, RMS {cal.rms_px:.3f} px on {len(cal.views)} frames, "
+        f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}, "
+        f"uncertainty p95 {result.uncertainty.p95_covered_px:.3f} px where the board was seen, coverage {result.coverage.completeness() * 100:.0f}%"
+    )
+    for reason in verdict.reasons:
+        print(f"  - {reason}")
+    print(f"wrote {', '.join(p.name for p in written)} to {args.out}")
+    if not verdict.trusted:
+        if not args.accept_partial:
+            print("camera_matrix.npy/dist_coeffs.npy were NOT written (pass --accept-partial to write them anyway)")
+        return 3
+    return 0
+
+
+def scale_command(args: argparse.Namespace) -> int:
+    from calibcoach.app.outputs.files import load_camera, write_npy, write_opencv_yaml, write_ros_camera_info
+
+    camera = load_camera(args.calibration)
+    if args.to is None and args.crop is None:
+        raise CalibcoachError("scale needs --to WxH and/or --crop x,y,w,h")
+    if args.crop:
+        camera = camera.cropped(*args.crop)
+    if args.to:
+        try:
+            camera = camera.resized(args.to)
+        except ValueError as exc:
+            raise CalibcoachError(str(exc)) from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_npy(out, camera)
+    write_opencv_yaml(out / "calibration.yaml", camera, rms_px=None, extra={"derived_from": str(args.calibration)})
+    write_ros_camera_info(out / "camera_info.yaml", camera, camera_name="calibcoach")
+    K = camera.camera_matrix
+    print(f"{camera.image_size[0]}x{camera.image_size[1]}: fx {K[0, 0]:.3f} fy {K[1, 1]:.3f} cx {K[0, 2]:.3f} cy {K[1, 2]:.3f}; "
+          f"distortion unchanged; wrote camera_matrix.npy, dist_coeffs.npy, calibration.yaml, camera_info.yaml to {out}")
+    return 0

@@ -1,0 +1,171 @@
+"""Write everything a finished session produces into the output folder.
+
+Files other tools read (`camera_matrix.npy`, `dist_coeffs.npy` -- only for a trusted result unless
+the user accepts a partial one --, `calibration.json`, `calibration.yaml`, `camera_info.yaml`) and
+pictures a person reads (coverage map, tilt/distance bars, residual map, per-frame errors,
+uncertainty map, undistorted check image).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from calibcoach.app.outputs.files import (
+    atomic_write_bytes,
+    calibration_payload,
+    write_calibration_json,
+    write_npy,
+    write_opencv_yaml,
+    write_ros_camera_info,
+)
+from calibcoach.app.outputs.pictures import (
+    bars_picture,
+    coverage_picture,
+    per_frame_error_picture,
+    residual_map_picture,
+    save_png,
+    uncertainty_picture,
+    undistorted_check_picture,
+)
+from calibcoach.app.session import SessionResult
+from calibcoach.app.solve.result import View
+from calibcoach.app.solve.verdict import uncertainty_target_px
+from calibcoach.coverage.grid import (
+    DISTANCE_CELLS,
+    TILT_CELLS,
+    TILT_HISTOGRAM_EDGES_DEG,
+)
+from calibcoach.drivers.base import SourceInfo
+
+
+def source_summary(info: SourceInfo, *, frames_read: int, replay_seconds: float, stopped_early: bool) -> dict:
+    return {
+        "description": info.description,
+        "kind": info.kind,
+        "camera_id": info.camera_id,
+        "fps": info.fps,
+        "frame_count": info.frame_count,
+        "frames_read": frames_read,
+        "replay_seconds": round(replay_seconds, 3),
+        "stopped_early": stopped_early,
+    }
+
+
+def write_session_outputs(
+    out_dir: Path,
+    result: SessionResult,
+    *,
+    source_info: SourceInfo,
+    command_line: Sequence[str],
+    accept_partial: bool,
+    replay_seconds: float,
+    frames_read: int,
+    stopped_early: bool,
+) -> list[Path]:
+    """Write all outputs; returns the paths written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cal = result.calibration
+    camera = cal.camera
+    written: list[Path] = []
+    if result.verdict.trusted or accept_partial:
+        written += list(write_npy(out_dir, camera))
+    else:
+        for stale in ("camera_matrix.npy", "dist_coeffs.npy"):
+            (out_dir / stale).unlink(missing_ok=True)  # never leave an earlier run's matrix beside a refusal
+    coverage_summary = result.coverage.summary()
+    coverage_summary["rejections"] = {k: v for k, v in result.rejections.items() if v}
+    coverage_summary["frames_seen"] = result.frames_seen
+    payload = calibration_payload(
+        cal,
+        verdict=result.verdict,
+        model_choice=result.model_choice,
+        uncertainty=result.uncertainty,
+        coverage_summary=coverage_summary,
+        board=result.board,
+        source=source_summary(source_info, frames_read=frames_read, replay_seconds=replay_seconds, stopped_early=stopped_early),
+        command_line=command_line,
+        lens_state=dict(source_info.controls),
+    )
+    payload["uncertainty"]["target_px"] = uncertainty_target_px(camera.image_size)
+    written.append(write_calibration_json(out_dir / "calibration.json", payload))
+    written.append(write_opencv_yaml(out_dir / "calibration.yaml", camera, rms_px=cal.rms_px, extra={
+        "frames_used": len(cal.views),
+        "verdict": result.verdict.grade,
+        "trusted": bool(result.verdict.trusted),
+        "uncertainty_p95_covered_px": result.uncertainty.p95_covered_px,
+        "uncertainty_p95_whole_image_px": result.uncertainty.p95_px,
+    }))
+    written.append(write_ros_camera_info(out_dir / "camera_info.yaml", camera, camera_name=source_info.camera_id or "camera"))
+    written.append(write_detections(out_dir / "detections.npz", cal.views))
+    written += _pictures(out_dir, result)
+    return written
+
+
+def write_detections(path: Path, views: Sequence[View]) -> Path:
+    """The corners the final solve used, so it can be re-run or audited without the images.
+
+    Arrays: `frame_index` (V,), `frame_name` (V,), `offsets` (V + 1,) into the concatenated
+    `ids` (N,) int32, `image_points_px` (N, 2) float64 and `object_points_m` (N, 3) float64.
+    """
+    offsets = np.concatenate([[0], np.cumsum([v.ids.size for v in views])]).astype(np.int64)
+    buffer = io.BytesIO()
+    np.savez_compressed(
+        buffer,
+        frame_index=np.array([v.frame_index for v in views], np.int64),
+        frame_name=np.array([v.frame_name for v in views]),
+        offsets=offsets,
+        ids=np.concatenate([v.ids for v in views]).astype(np.int32),
+        image_points_px=np.concatenate([v.image_points_px for v in views]),
+        object_points_m=np.concatenate([v.object_points_m for v in views]),
+    )
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def read_detections(path: Path) -> list[View]:
+    """The views written by `write_detections`."""
+    with np.load(path) as data:
+        o = data["offsets"]
+        return [
+            View(int(data["frame_index"][i]), str(data["frame_name"][i]), data["ids"][o[i]:o[i + 1]],
+                 data["image_points_px"][o[i]:o[i + 1]], data["object_points_m"][o[i]:o[i + 1]])
+            for i in range(len(o) - 1)
+        ]
+
+
+def _pictures(out_dir: Path, result: SessionResult) -> list[Path]:
+    cal = result.calibration
+    size = cal.camera.image_size
+    cov = result.coverage
+    paths = [save_png(out_dir / "coverage.png", coverage_picture(
+        size, [v.image_points_px for v in cal.views], cov.region_counts,
+        required=float(cov.requirements.corners_per_region_cell),
+    ))]
+    req = cov.requirements
+    paths.append(save_png(out_dir / "tilt_distance.png", bars_picture([
+        ("tilt (views / views needed)", [c.replace("_", " ") for c in TILT_CELLS],
+         [cov.tilt_counts[c] / req.views_per_tilt_cell for c in TILT_CELLS]),
+        ("distance (views / views needed)", list(DISTANCE_CELLS),
+         [cov.distance_counts[c] / req.views_per_distance_cell for c in DISTANCE_CELLS]),
+    ], title="Tilt and distance coverage", subtitle="green: requirement met; top edge / right edge away = positive tilt")))
+    hist = cov.tilt_histograms()
+    tilt_labels = [f"{int(a)}..{int(b)}" for a, b in zip(TILT_HISTOGRAM_EDGES_DEG[:-1], TILT_HISTOGRAM_EDGES_DEG[1:], strict=True)]
+    paths.append(save_png(out_dir / "tilt_histogram.png", bars_picture([
+        ("tilt about the image x axis, deg", tilt_labels, [float(v) for v in hist["tilt_x"]]),
+        ("tilt about the image y axis, deg", tilt_labels, [float(v) for v in hist["tilt_y"]]),
+    ], title="Tilts of the frames used", subtitle="views per tilt bin (the method asks for 30-60 deg both ways)", y_label="views")))
+    points = np.concatenate([v.image_points_px for v in cal.views])
+    residuals = np.concatenate(cal.residuals_px)
+    paths.append(save_png(out_dir / "residuals.png", residual_map_picture(size, points, residuals)))
+    labels = [v.frame_name or str(v.frame_index) for v in cal.views]
+    paths.append(save_png(out_dir / "per_frame_errors.png", per_frame_error_picture(labels, cal.per_view_rms_px)))
+    paths.append(save_png(out_dir / "uncertainty.png", uncertainty_picture(
+        result.uncertainty, target_px=uncertainty_target_px(size), image_size=size,
+    )))
+    if result.check_image is not None:
+        paths.append(save_png(out_dir / "undistorted_check.png", undistorted_check_picture(result.check_image, cal.camera)))
+    return paths

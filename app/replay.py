@@ -1,0 +1,128 @@
+"""Replay: run a recorded source through the session as fast as the machine allows.
+
+Detection dominates the per-frame cost and OpenCV's `detectBoard` releases the GIL, so frames are
+detected ahead on worker threads (one detector per thread) while the session consumes outcomes
+strictly in frame order; the decisions are therefore identical to a single-threaded run.
+Replay stops reading as soon as the session's stop rule is met.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.drivers.base import Frame, FrameSource
+from calibcoach.drivers.errors import SourceError
+
+_SETTLE_FRAMES = 30  # frames detected one by one while the print's variant is still unknown
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayStats:
+    frames_read: int
+    seconds: float
+    stopped_early: bool  # the stop rule was met before the source ended
+    interrupted: bool  # Ctrl-C: the session holds every frame accepted until then
+    board: BoardSpec  # with legacy/inverted settled
+    variant_found: str | None
+
+
+class _ThreadDetectors:
+    """One CharucoBoardDetector per worker thread, all built from the settled board."""
+
+    def __init__(self, spec: BoardSpec) -> None:
+        self.spec = spec
+        self._local = threading.local()
+
+    def detect(self, frame: Frame) -> Detection:
+        detector = getattr(self._local, "detector", None)
+        if detector is None:
+            detector = self._local.detector = CharucoBoardDetector(self.spec)
+        return detector.detect(frame.grey())
+
+
+def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
+                    settle: CharucoBoardDetector | None = None) -> Iterator[tuple[Frame, Detection]]:
+    """Yield (frame, detection) in source order, detecting ahead on `workers` threads."""
+    first = settle or CharucoBoardDetector(board)
+    frames = iter(source)
+    for frame in frames:  # detect sequentially until the print's legacy/inverted variant is known
+        yield frame, first.detect(frame.grey())
+        if first.settled or frame.index >= _SETTLE_FRAMES:
+            break
+    if not first.settled:
+        spec = first.spec.with_detected(legacy=bool(first.spec.legacy), inverted=bool(first.spec.inverted))
+    else:
+        spec = first.spec
+    detectors = _ThreadDetectors(spec)
+    pending: deque[tuple[Frame, Future[Detection]]] = deque()
+    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="detect") as pool:
+        try:
+            for frame in frames:
+                pending.append((frame, pool.submit(detectors.detect, frame)))
+                if len(pending) >= 2 * workers + 2:
+                    f, fut = pending.popleft()
+                    yield f, fut.result()
+            while pending:
+                f, fut = pending.popleft()
+                yield f, fut.result()
+        finally:
+            for _f, fut in pending:
+                fut.cancel()
+
+
+def _with_end(stream: Iterator[tuple[Frame, Detection]]) -> Iterator[tuple[Frame, Detection] | None]:
+    yield from stream
+    yield None
+
+
+def run_replay(
+    source: FrameSource,
+    board: BoardSpec,
+    settings: SessionSettings | None = None,
+    *,
+    workers: int = 2,
+    on_outcome: Callable[[FrameOutcome, Frame], None] | None = None,
+) -> tuple[CalibrationSession, ReplayStats]:
+    """Feed every frame of `source` to a new session until the source ends or the stop rule is met."""
+    info = source.info
+    settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
+    settle = CharucoBoardDetector(board)
+    session: CalibrationSession | None = None
+    start = time.perf_counter()
+    read = 0
+    stopped = interrupted = False
+    stream = detected_frames(source, board, workers=workers, settle=settle)
+    held: tuple[Frame, Detection] | None = None  # one frame of lookahead for the two-sided stillness test
+    try:
+        for item in _with_end(stream):
+            if item is not None:
+                read += 1
+            if held is not None:
+                frame, detection = held
+                if session is None:
+                    session = CalibrationSession(settle.spec, frame.image_size, settings)
+                following = None if item is None else (item[1], item[0].timestamp_ns)
+                outcome = session.process(frame, detection, following=following)
+                if on_outcome is not None:
+                    on_outcome(outcome, frame)
+                if session.done:
+                    stopped = True
+                    break
+            held = item
+    except KeyboardInterrupt:
+        interrupted = True  # stop reading; what was accepted is solved as usual
+    finally:
+        stream.close()
+    if session is None:
+        skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
+        raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
+    session.board = settle.spec
+    return session, ReplayStats(read, time.perf_counter() - start, stopped, interrupted, settle.spec, settle.variant_found)

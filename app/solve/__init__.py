@@ -1,0 +1,1 @@
+"""Calibration solving: models, robust solve, projection uncertainty, model choice and verdict."""

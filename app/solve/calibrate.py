@@ -1,0 +1,233 @@
+"""One calibration solve per distortion model, on OpenCV's solvers.
+
+- pinhole:  `cv2.calibrateCamera`, 5-parameter Brown-Conrady (skew fixed at 0, as OpenCV does).
+- rational: `cv2.calibrateCamera` with `CALIB_RATIONAL_MODEL` (k1..k6, p1, p2); seeded from a
+            pinhole solve when none is given, which keeps the extra terms from wandering.
+- fisheye:  `cv2.fisheye.calibrate` (Kannala-Brandt). OpenCV's own start (f from a homography)
+            asserts in InitExtrinsics on wide views, so the focal length is seeded from a field
+            of view guess and extrinsics are recomputed; several seeds are tried and the best kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from calibcoach.app.solve.result import View
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.lens import CameraModel
+
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+_GOOD_ENOUGH_RMS_PX = 1.0  # a start that fits this well is kept without trying the others
+_FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this order; the best RMS wins
+
+
+class RawSolution:
+    """The bare result of one solver call, before residual analysis."""
+
+    __slots__ = ("camera", "rms_px", "rvecs", "tvecs")
+
+    def __init__(self, camera: CameraModel, rms_px: float, rvecs: np.ndarray, tvecs: np.ndarray) -> None:
+        self.camera = camera
+        self.rms_px = rms_px
+        self.rvecs = rvecs  # (V, 3) float64
+        self.tvecs = tvecs  # (V, 3) float64
+
+
+def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, initial: CameraModel | None = None,
+          reduced: bool = False) -> RawSolution:
+    """Solve intrinsics and per-view poses for `model` from `views` (each with >= 6 corners).
+
+    `reduced` solves a well-conditioned subset for the first frames of a capture: one focal length,
+    the principal point held at the image centre and only the first radial terms. A full model on
+    five far views fits noise (focal lengths of 3000 px for a 950 px lens were seen), and those
+    bootstrap intrinsics steer pose estimates, coverage and frame scoring until the data is richer.
+
+    Raises:
+        CalibrationError: fewer than 3 views, or the solver failed on this data.
+    """
+    if len(views) < 3:
+        raise CalibrationError(f"a calibration needs at least 3 usable views, got {len(views)}; capture more frames of the board")
+    if reduced:
+        return _solve_reduced(views, image_size, model)
+    if model == "fisheye":
+        return _solve_fisheye(views, image_size, initial)
+    # Starts, best first: the caller's guess (the incremental solve), then for the rational model a
+    # pinhole solve, then OpenCV's own initialisation. A warm start that fits well ends the search;
+    # otherwise the lowest RMS wins (a few inconsistent views can send one start into a wrong basin).
+    starts: list[CameraModel | None] = []
+    if initial is not None and initial.model != "fisheye":
+        starts.append(initial)
+    if model == "rational":
+        try:
+            starts.append(_solve_from(views, image_size, "pinhole", None).camera)
+        except CalibrationError:
+            pass
+    starts.append(None)
+    best: RawSolution | None = None
+    failure: CalibrationError | None = None
+    for start in starts:
+        try:
+            sol = _solve_from(views, image_size, model, start)
+        except CalibrationError as exc:
+            failure = exc
+            continue
+        if best is None or sol.rms_px < best.rms_px:
+            best = sol
+        if best.rms_px < _GOOD_ENOUGH_RMS_PX:
+            break
+    if best is None:
+        assert failure is not None
+        raise failure
+    return best
+
+
+def _solve_from(views: Sequence[View], image_size: tuple[int, int], model: str, initial: CameraModel | None) -> RawSolution:
+    obj = [np.ascontiguousarray(v.object_points_m, np.float32).reshape(-1, 1, 3) for v in views]
+    img = [np.ascontiguousarray(v.image_points_px, np.float32).reshape(-1, 1, 2) for v in views]
+    flags = cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0
+    K0 = None
+    D0 = None
+    if initial is not None and initial.model != "fisheye":
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+        K0 = initial.camera_matrix.copy()
+        D0 = np.zeros((1, 8 if model == "rational" else 5))
+        n = min(D0.size, initial.dist_coeffs.size)
+        D0[0, :n] = initial.dist_coeffs[:n]
+    try:
+        rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), K0, D0, flags=flags, criteria=_CRITERIA)
+    except cv2.error as exc:
+        raise CalibrationError(f"OpenCV's {model} solve failed on these {len(views)} views ({_short(exc)})") from None
+    camera = CameraModel(model, K, np.asarray(D).reshape(-1)[: 8 if model == "rational" else 5], image_size)
+    return _checked(RawSolution(camera, float(rms), _stack(rvecs), _stack(tvecs)), len(views))
+
+
+def _checked(sol: RawSolution, n_views: int) -> RawSolution:
+    """Refuse a solve that ran off: non-finite numbers, a negative focal length, a principal point
+    far outside the image. OpenCV returns such results without complaint when a few bad views
+    pull the optimiser into a wrong basin; passing them on would poison everything downstream."""
+    K = sol.camera.camera_matrix
+    w, h = sol.camera.image_size
+    problems = []
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(sol.camera.dist_coeffs)) and np.isfinite(sol.rms_px)):
+        problems.append("non-finite parameters")
+    elif K[0, 0] <= 0 or K[1, 1] <= 0 or not 0.5 < K[0, 0] / K[1, 1] < 2.0:
+        problems.append(f"focal lengths fx {K[0, 0]:.1f}, fy {K[1, 1]:.1f}")
+    elif not (0 < K[0, 2] < w and 0 < K[1, 2] < h):
+        problems.append(f"principal point ({K[0, 2]:.0f}, {K[1, 2]:.0f}) outside the image")
+    if problems:
+        raise CalibrationError(
+            f"the {sol.camera.model} solve on {n_views} views diverged ({problems[0]}); some views disagree with the rest"
+        )
+    return sol
+
+
+def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: str) -> RawSolution:
+    """The bootstrap solve: fx = fy, centred principal point, k1 k2 only (k1 only on the fisheye)."""
+    if model == "fisheye":
+        seed = CameraModel.from_fov(image_size, 150.0, "fisheye")
+        flags = (cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
+                 | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4)
+        obj = [np.ascontiguousarray(v.object_points_m, np.float64).reshape(1, -1, 3) for v in views]
+        img = [np.ascontiguousarray(v.image_points_px, np.float64).reshape(1, -1, 2) for v in views]
+        try:
+            rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(obj, img, tuple(image_size), seed.camera_matrix.copy(),
+                                                            np.zeros((4, 1)), flags=flags, criteria=_CRITERIA)
+        except cv2.error as exc:
+            raise CalibrationError(f"the bootstrap fisheye solve failed ({_short(exc)})") from None
+        camera = CameraModel("fisheye", K, np.asarray(D).reshape(-1), image_size)
+    else:
+        seed = CameraModel.from_fov(image_size, 70.0)
+        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_PRINCIPAL_POINT
+                 | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3)
+        obj = [np.ascontiguousarray(v.object_points_m, np.float32).reshape(-1, 1, 3) for v in views]
+        img = [np.ascontiguousarray(v.image_points_px, np.float32).reshape(-1, 1, 2) for v in views]
+        try:
+            rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), seed.camera_matrix.copy(),
+                                                          np.zeros((1, 5)), flags=flags, criteria=_CRITERIA)
+        except cv2.error as exc:
+            raise CalibrationError(f"the bootstrap solve failed ({_short(exc)})") from None
+        camera = CameraModel("pinhole", K, np.asarray(D).reshape(-1)[:5], image_size)
+    return _checked(RawSolution(camera, float(rms), _stack(rvecs), _stack(tvecs)), len(views))
+
+
+def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: CameraModel | None) -> RawSolution:
+    obj = [np.ascontiguousarray(v.object_points_m, np.float64).reshape(1, -1, 3) for v in views]
+    img = [np.ascontiguousarray(v.image_points_px, np.float64).reshape(1, -1, 2) for v in views]
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
+    seeds: list[CameraModel] = []
+    if initial is not None and initial.model == "fisheye":
+        seeds.append(initial)
+    try:  # a narrow lens is seeded best by its pinhole solve (equidistant ~ pinhole near the axis)
+        pinhole = solve(views, image_size, "pinhole").camera
+        if pinhole.field_of_view_deg()[0] < 100.0:
+            seeds.append(CameraModel("fisheye", pinhole.camera_matrix, np.zeros(4), image_size))
+    except CalibrationError:
+        pass
+    seeds += [CameraModel.from_fov(image_size, fov, "fisheye") for fov in _FISHEYE_SEED_HFOV_DEG]
+    best: RawSolution | None = None
+    failures: list[str] = []
+    for seed in seeds:
+        try:
+            rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
+                obj, img, tuple(image_size), seed.camera_matrix.copy(), seed.dist_coeffs.reshape(4, 1).copy(),
+                flags=flags, criteria=_CRITERIA,
+            )
+        except cv2.error as exc:
+            failures.append(_short(exc))
+            continue
+        if not np.all(np.isfinite(K)) or not np.all(np.isfinite(D)) or K[0, 0] <= 0:
+            failures.append("non-finite result")
+            continue
+        try:
+            sol = _checked(RawSolution(CameraModel("fisheye", K, np.asarray(D).reshape(-1), image_size), float(rms),
+                                       _stack(rvecs), _stack(tvecs)), len(views))
+        except CalibrationError as exc:
+            failures.append(str(exc))
+            continue
+        if best is None or sol.rms_px < best.rms_px:
+            best = sol
+        if best.rms_px < 1.0 and seed is seeds[0]:
+            break  # the first seed converged well: the others only cost time
+    if best is None:
+        raise CalibrationError(
+            f"the fisheye (Kannala-Brandt) solve failed from every start ({'; '.join(sorted(set(failures)))}); "
+            "check the board settings, or try --model rational"
+        )
+    return best
+
+
+def reprojection_residuals(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> list[np.ndarray]:
+    """Per view (N_v, 2) float64 residuals, observed minus projected, in pixels."""
+    return [v.image_points_px - camera.project(v.object_points_m, rvecs[i], tvecs[i]) for i, v in enumerate(views)]
+
+
+def pose_for_view(camera: CameraModel, view: View) -> tuple[np.ndarray, np.ndarray] | None:
+    """T_cam_board for one view with fixed intrinsics (held-out evaluation), or None when it fails.
+
+    Works for every model by unprojecting the corners to normalised coordinates first, so the
+    fisheye needs no special PnP.
+    """
+    rays = camera.unproject(view.image_points_px)
+    if np.any(rays[:, 2] <= 1e-6):
+        return None
+    normalised = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
+    ok, rvec, tvec = cv2.solvePnP(view.object_points_m.reshape(-1, 1, 3), normalised, np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(
+        view.object_points_m.reshape(-1, 1, 3), view.image_points_px.reshape(-1, 1, 2).astype(np.float64),
+        camera.camera_matrix, camera.opencv_dist(), rvec, tvec,
+    ) if camera.model != "fisheye" else (rvec, tvec)
+    return rvec.reshape(3), tvec.reshape(3)
+
+
+def _stack(vectors: Sequence[np.ndarray]) -> np.ndarray:
+    return np.asarray([np.asarray(v, np.float64).reshape(3) for v in vectors], np.float64).reshape(-1, 3)
+
+
+def _short(exc: cv2.error) -> str:
+    text = str(exc).strip().splitlines()
+    return text[-1].strip() if text else "OpenCV error"

@@ -1,0 +1,138 @@
+"""Choosing the distortion model: the field of view proposes, held-out residuals decide.
+
+Each candidate model is solved on the odd views and scored on the even views (and the other way
+round): intrinsics fixed, only the board pose fitted per held-out view. A model with too many
+parameters for the data fits its own half well and the other half badly; a model too simple for
+the lens fits neither. The simplest candidate within a small margin of the best held-out error
+wins, "simplest" ordered by the field of view (the method: Brown-Conrady for ordinary lenses,
+rational beyond ~90 deg, Kannala-Brandt beyond 120 deg).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.result import ModelChoice, View
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.lens import CameraModel
+
+MIN_VIEWS_FOR_CROSS_VALIDATION = 8
+_MARGIN = 1.05  # a more complex model must beat the simpler one's held-out error by more than 5 %
+_MARGIN_PX = 0.005
+
+
+def held_out_rms(camera: CameraModel, views: Sequence[View]) -> float:
+    """Typical RMS reprojection error of `views` with the intrinsics fixed and only poses fitted.
+
+    The per-view RMS values are combined as an RMS over the best 90% of the views, so that a
+    motion-blurred frame or two (which the final robust solve drops anyway) do not decide the model.
+    """
+    per_view = []
+    for view in views:
+        pose = pose_for_view(camera, view)
+        if pose is None:
+            per_view.append(float("inf"))
+            continue
+        rvec, tvec = _refine_pose(camera, view, *pose)
+        res = view.image_points_px - camera.project(view.object_points_m, rvec, tvec)
+        per_view.append(float(np.mean(np.sum(res**2, axis=1))))
+    if not per_view:
+        return float("inf")
+    kept = np.sort(per_view)[: max(1, int(np.ceil(0.9 * len(per_view))))]
+    return float(np.sqrt(np.mean(kept)))
+
+
+def _solve_half(views: Sequence[View], image_size: tuple[int, int], model: str) -> CameraModel:
+    """Solve one half, drop its clearly inconsistent views (3x the median view RMS) and solve again."""
+    raw = solve(views, image_size, model)
+    res = reprojection_residuals(raw.camera, views, raw.rvecs, raw.tvecs)
+    view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in res])
+    keep = view_rms <= max(3.0 * float(np.median(view_rms)), 0.5)
+    if keep.all() or keep.sum() < 3:
+        return raw.camera
+    return solve([v for v, k in zip(views, keep, strict=True) if k], image_size, model, initial=raw.camera).camera
+
+
+def _refine_pose(camera: CameraModel, view: View, rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the pose alone (works for every model through projectPoints' Jacobian)."""
+    for _ in range(10):
+        if camera.model == "fisheye":
+            proj, J = cv2.fisheye.projectPoints(
+                view.object_points_m.reshape(1, -1, 3), rvec.reshape(1, 1, 3), tvec.reshape(1, 1, 3),
+                camera.camera_matrix, camera.dist_coeffs,
+            )
+            Jp = J[:, 8:14]  # fisheye Jacobian columns: f(2), c(2), k(4), om(3), T(3), alpha(1)
+        else:
+            proj, J = cv2.projectPoints(view.object_points_m, rvec, tvec, camera.camera_matrix, camera.opencv_dist())
+            Jp = J[:, :6]
+        r = (view.image_points_px - proj.reshape(-1, 2)).reshape(-1)
+        step, *_ = np.linalg.lstsq(Jp, r, rcond=None)
+        rvec, tvec = rvec + step[:3], tvec + step[3:]
+        if np.max(np.abs(step)) < 1e-10:
+            break
+    return rvec, tvec
+
+
+def candidate_order(hfov_deg: float) -> list[str]:
+    """Candidates, simplest first for this field of view."""
+    if hfov_deg >= 120.0:
+        return ["fisheye", "rational"]
+    if hfov_deg >= 90.0:
+        return ["rational", "fisheye", "pinhole"]
+    return ["pinhole", "rational", "fisheye"]
+
+
+def choose_model(views: Sequence[View], image_size: tuple[int, int]) -> ModelChoice:
+    """Pick a model for `views` by field of view and odd/even cross-validation."""
+    hfov = estimate_hfov_deg(views, image_size)
+    order = candidate_order(hfov)
+    if len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION:
+        chosen = "fisheye" if hfov >= 120.0 else "pinhole"
+        return ModelChoice(chosen, {}, (
+            f"only {len(views)} views: too few to cross-validate, so the {chosen} model was taken from the "
+            f"~{hfov:.0f} deg field of view (fewer parameters are safer on little data)"
+        ))
+    odd, even = list(views[1::2]), list(views[0::2])
+    scores: dict[str, float] = {}
+    for model in order:
+        try:
+            a = _solve_half(odd, image_size, model)
+            b = _solve_half(even, image_size, model)
+        except CalibrationError:
+            scores[model] = float("inf")
+            continue
+        ea, eb = held_out_rms(a, even), held_out_rms(b, odd)
+        scores[model] = float(np.sqrt(0.5 * (ea * ea + eb * eb)))
+    best = min(scores.values())
+    if not np.isfinite(best):
+        raise CalibrationError("no distortion model could be solved on these views; capture more, more varied frames")
+    for model in order:
+        if scores[model] <= best * _MARGIN + _MARGIN_PX:
+            others = ", ".join(f"{m} {s:.3f} px" for m, s in scores.items())
+            return ModelChoice(model, scores, (
+                f"~{hfov:.0f} deg horizontal field of view; held-out RMS (solve on odd frames, test on even and back): "
+                f"{others}; {model} is the simplest within 5% of the best"
+            ))
+    raise AssertionError("unreachable: the best model is within its own margin")
+
+
+def estimate_hfov_deg(views: Sequence[View], image_size: tuple[int, int]) -> float:
+    """Horizontal field of view from quick pinhole and fisheye solves, whichever fits better.
+
+    A pinhole solve is reliable for narrow lenses and fails on fisheyes; an equidistant solve
+    follows wide lenses; the lower RMS tells which one saw the lens right.
+    """
+    best: tuple[float, float] | None = None
+    for model in ("pinhole", "fisheye"):
+        try:
+            raw = solve(views, image_size, model)
+        except CalibrationError:
+            continue
+        hfov = raw.camera.field_of_view_deg()[0]
+        if np.isfinite(hfov) and 1.0 < hfov < 250.0 and (best is None or raw.rms_px < best[0]):
+            best = (raw.rms_px, hfov)
+    return 70.0 if best is None else best[1]

@@ -1,0 +1,98 @@
+"""The solve's output types: what a calibration is, and what the report around it says."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibcoach.drivers.lens import CameraModel
+
+
+@dataclass(frozen=True, slots=True)
+class View:
+    """One frame's observations as they enter the solver."""
+
+    frame_index: int  # index of the frame in its source
+    frame_name: str  # file name for folder sources, "" otherwise
+    ids: np.ndarray  # (N,) int32 ChArUco corner ids
+    image_points_px: np.ndarray  # (N, 2) float64 detected corners
+    object_points_m: np.ndarray  # (N, 3) float64 the same corners on the board, metres
+
+
+@dataclass(frozen=True, slots=True)
+class DroppedCorner:
+    frame_index: int
+    corner_id: int
+    residual_px: float  # length of the corner's reprojection error when it was dropped
+
+
+@dataclass(frozen=True, slots=True)
+class DroppedFrame:
+    frame_index: int
+    reason: str  # e.g. "frame RMS 2.31 px is 6.2x the median frame RMS (defocus or motion blur)"
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """A solved camera model with everything needed to judge it."""
+
+    camera: CameraModel
+    rms_px: float  # RMS reprojection error over all kept corners, per coordinate pair (OpenCV's definition)
+    views: tuple[View, ...]  # the views the final solve used (outlier corners removed)
+    rvecs: np.ndarray  # (V, 3) float64 Rodrigues vectors, T_cam_board
+    tvecs: np.ndarray  # (V, 3) float64 metres, T_cam_board
+    residuals_px: tuple[np.ndarray, ...]  # per view (N_v, 2) float64, observed - projected
+    per_view_rms_px: np.ndarray  # (V,) float64
+    intrinsic_names: tuple[str, ...]  # names of the free intrinsic parameters, e.g. ("fx", "fy", "cx", ...)
+    intrinsic_covariance: np.ndarray  # (P, P) float64 covariance of the free intrinsics, poses marginalised
+    dropped_frames: tuple[DroppedFrame, ...] = ()
+    dropped_corners: tuple[DroppedCorner, ...] = ()
+
+    @property
+    def intrinsic_std(self) -> np.ndarray:
+        """(P,) float64 one-sigma uncertainty of each free intrinsic parameter."""
+        return np.sqrt(np.clip(np.diag(self.intrinsic_covariance), 0, None))
+
+    @property
+    def corner_count(self) -> int:
+        return int(sum(v.ids.size for v in self.views))
+
+
+@dataclass(frozen=True, slots=True)
+class UncertaintyMap:
+    """Projection uncertainty over a grid of image points (mrcal's idea, from the solve's covariance)."""
+
+    grid_x_px: np.ndarray  # (GX,) float64 pixel x of grid columns
+    grid_y_px: np.ndarray  # (GY,) float64 pixel y of grid rows
+    sigma_px: np.ndarray  # (GY, GX) float64 1-sigma worst-direction projection uncertainty
+    covered: np.ndarray  # (GY, GX) bool grid points inside the region the board was seen in
+
+    @property
+    def p95_covered_px(self) -> float:
+        values = self.sigma_px[self.covered] if self.covered.any() else self.sigma_px.reshape(-1)
+        return float(np.percentile(values, 95))
+
+    @property
+    def p95_px(self) -> float:
+        return float(np.percentile(self.sigma_px, 95))
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """The judgement a user reads first."""
+
+    grade: str  # "excellent" | "good" | "acceptable" | "poor" | "insufficient"
+    trusted: bool  # False when coverage or uncertainty is not enough, whatever the RMS says
+    rms_grade: str  # the method's table on RMS alone, scaled for resolution
+    reasons: tuple[str, ...]  # sentences: what is good, what is missing, what to do
+    rms_thresholds_px: tuple[float, float, float] = (0.3, 0.5, 1.0)  # excellent/good/acceptable upper bounds used
+
+
+@dataclass(frozen=True, slots=True)
+class ModelChoice:
+    """Why a distortion model was chosen (held-out residuals per candidate)."""
+
+    chosen: str
+    candidates: dict[str, float] = field(default_factory=dict)  # model -> held-out RMS px (cross-validation)
+    reason: str = ""

@@ -1,0 +1,127 @@
+"""The final solve: drop outlier corners and outlier frames, log why, solve again.
+
+A corner is an outlier when its residual is far outside the residual distribution of the whole
+solve (chi-square test with 2 degrees of freedom on a robust sigma). A frame is an outlier when its
+RMS stands far above the median frame's (defocus, motion blur or a misdetection affects whole
+frames). Each round removes what it finds and re-solves, until nothing more is dropped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from calibcoach.app.solve.calibrate import reprojection_residuals, solve
+from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
+from calibcoach.app.solve.uncertainty import intrinsic_covariance, intrinsic_names
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.lens import CameraModel
+
+MIN_CORNERS = 6
+# chi-square with 2 dof: 18.42 is the 99.99% point, so a clean solve drops ~1 corner in 10,000.
+_CORNER_CHI2 = 18.42
+_CORNER_FLOOR_PX = 0.3  # never call a residual below this an outlier: sub-0.3 px is normal corner noise
+_FRAME_RATIO = 3.0  # frame RMS over median frame RMS
+_FRAME_FLOOR_PX = 0.5  # and above this, so clean sessions with tiny errors keep all frames
+
+
+def robust_sigma_px(residuals: Sequence[np.ndarray]) -> float:
+    """Per-coordinate noise estimate from residuals (1.4826 * MAD), immune to a few outliers."""
+    flat = np.concatenate([r.reshape(-1) for r in residuals]) if residuals else np.zeros(1)
+    return float(1.4826 * np.median(np.abs(flat - np.median(flat))))
+
+
+def robust_calibrate(
+    views: Sequence[View],
+    image_size: tuple[int, int],
+    model: str,
+    *,
+    initial: CameraModel | None = None,
+    max_rounds: int = 4,
+) -> Calibration:
+    """Solve, remove outliers, re-solve; returns the final Calibration with what was dropped and why."""
+    kept = list(views)
+    dropped_frames: list[DroppedFrame] = []
+    dropped_corners: list[DroppedCorner] = []
+    raw = solve(kept, image_size, model, initial=initial)
+    for _round in range(max_rounds):
+        residuals = reprojection_residuals(raw.camera, kept, raw.rvecs, raw.tvecs)
+        sigma = max(robust_sigma_px(residuals), 1e-3)
+        corner_limit = max(np.sqrt(_CORNER_CHI2) * sigma, _CORNER_FLOOR_PX)
+        view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in residuals])
+        frame_limit = max(_FRAME_RATIO * float(np.median(view_rms)), _FRAME_FLOOR_PX)
+        changed = False
+        next_views: list[View] = []
+        for view, res, rms in zip(kept, residuals, view_rms, strict=True):
+            if rms > frame_limit and len(kept) > 4:
+                dropped_frames.append(DroppedFrame(view.frame_index, (
+                    f"frame RMS {rms:.2f} px is {rms / max(np.median(view_rms), 1e-9):.1f}x the median frame's "
+                    f"{np.median(view_rms):.2f} px (defocus, motion blur or a misdetection)"
+                )))
+                changed = True
+                continue
+            norms = np.linalg.norm(res, axis=1)
+            bad = norms > corner_limit
+            if bad.any():
+                changed = True
+                for cid, n in zip(view.ids[bad], norms[bad], strict=True):
+                    dropped_corners.append(DroppedCorner(view.frame_index, int(cid), float(n)))
+                good = ~bad
+                if good.sum() < MIN_CORNERS:
+                    dropped_frames.append(DroppedFrame(view.frame_index, f"only {int(good.sum())} corners left after removing outlier corners"))
+                    continue
+                view = replace(view, ids=view.ids[good], image_points_px=view.image_points_px[good], object_points_m=view.object_points_m[good])
+            next_views.append(view)
+        if not changed:
+            break
+        if len(next_views) < 3:
+            raise CalibrationError(
+                f"after removing outliers only {len(next_views)} views remain; the frames disagree too much to calibrate "
+                "(check that focus was locked and the board is flat)"
+            )
+        kept = next_views
+        raw = solve(kept, image_size, model, initial=raw.camera)
+    return build_calibration(raw.camera, kept, raw.rvecs, raw.tvecs, dropped_frames, dropped_corners)
+
+
+def noise_sigma_px(rms_px: float, *, n_points: int, n_params: int, n_views: int) -> float:
+    """Per-coordinate corner noise from a solve's RMS (per point), corrected for the fitted parameters.
+
+    The residuals of a least-squares fit are smaller than the noise by the degrees of freedom the
+    fit used: sigma^2 = RMS^2 * 2N / (2N - P - 6V) per coordinate pair, halved per coordinate.
+    """
+    dof = 2 * n_points - n_params - 6 * n_views
+    scale = np.sqrt(2 * n_points / dof) if dof > 0 else 1.0
+    return float(rms_px / np.sqrt(2.0) * scale)
+
+
+def build_calibration(
+    camera: CameraModel,
+    views: Sequence[View],
+    rvecs: np.ndarray,
+    tvecs: np.ndarray,
+    dropped_frames: Sequence[DroppedFrame] = (),
+    dropped_corners: Sequence[DroppedCorner] = (),
+) -> Calibration:
+    """Residuals, per-view RMS and the intrinsics' covariance for a solved model."""
+    residuals = reprojection_residuals(camera, views, rvecs, tvecs)
+    all_res = np.concatenate(residuals)
+    rms = float(np.sqrt(np.mean(np.sum(all_res**2, axis=1))))
+    view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in residuals])
+    sigma = noise_sigma_px(rms, n_points=all_res.shape[0], n_params=len(intrinsic_names(camera.model)), n_views=len(views))
+    covariance = intrinsic_covariance(camera, views, rvecs, tvecs, sigma_px=sigma)
+    return Calibration(
+        camera=camera,
+        rms_px=rms,
+        views=tuple(views),
+        rvecs=rvecs,
+        tvecs=tvecs,
+        residuals_px=tuple(residuals),
+        per_view_rms_px=view_rms,
+        intrinsic_names=intrinsic_names(camera.model),
+        intrinsic_covariance=covariance,
+        dropped_frames=tuple(dropped_frames),
+        dropped_corners=tuple(dropped_corners),
+    )

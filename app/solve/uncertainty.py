@@ -1,0 +1,397 @@
+"""How far off a pixel's ray can be: projection uncertainty from an OpenCV solve (mrcal's idea).
+
+A reprojection RMS only says the model fits the frames it saw. Here the solve's Jacobian gives the
+covariance of the intrinsics with every board pose marginalised out (a Schur complement), and that
+covariance is pushed through the projection of a grid of image points. Following mrcal, the part of
+an intrinsic perturbation that a small common rotation of the camera frame explains is removed:
+any extrinsic calibration done later absorbs it, so it is not an error a user would ever see.
+
+Rows of every Jacobian are ordered as OpenCV's: corner i of a view gives rows 2i (u) and 2i + 1 (v).
+Columns follow `intrinsic_names(model)`; skew is fixed at 0 in every model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from calibcoach.app.solve.result import UncertaintyMap, View
+from calibcoach.drivers.lens import MODELS, CameraModel
+
+DEFAULT_GRID_X = 32  # grid columns; rows follow the image's aspect (18 for 16:9), as mrcal's maps
+DEFAULT_DISTANCE_M = 10.0  # "far": beyond any board distance, mrcal's working-distance idea
+_EIGEN_FLOOR = 1e-12  # relative floor on the scaled information's eigenvalues: unobserved -> huge variance
+
+_NAMES = {
+    "pinhole": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
+    "rational": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "fisheye": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+}
+
+
+def intrinsic_names(model: str) -> tuple[str, ...]:
+    """Names of the free intrinsics of `model`, in Jacobian column order (OpenCV's order).
+
+    Example:
+        >>> intrinsic_names("fisheye")
+        ('fx', 'fy', 'cx', 'cy', 'k1', 'k2', 'k3', 'k4')
+    """
+    if model not in _NAMES:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    return _NAMES[model]
+
+
+# --- the solve's Jacobian and covariance -----------------------------------------------------
+
+
+def view_jacobian(camera: CameraModel, object_points_m: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian of one view's projected corners w.r.t. the intrinsics and the view's pose.
+
+    Args:
+        camera: the model the Jacobian is taken at.
+        object_points_m: (N, 3) float board-frame corners, metres.
+        rvec: (3,) Rodrigues vector of T_cam_board.
+        tvec: (3,) translation of T_cam_board, metres.
+
+    Returns:
+        J_intrinsics (2N, P) float64 px per parameter unit and J_pose (2N, 6) float64 (rvec then tvec).
+    """
+    obj = np.ascontiguousarray(object_points_m, np.float64).reshape(-1, 3)
+    r, t = np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
+    if camera.model == "fisheye":
+        # Columns f(2), c(2), k(4), om(3), t(3), alpha(1), as documented; checked against finite
+        # differences in tests/app/test_uncertainty.py. alpha (skew) is fixed, so it is dropped.
+        K, D = camera.camera_matrix, camera.dist_coeffs
+        _, J = cv2.fisheye.projectPoints(obj.reshape(1, -1, 3), r.reshape(1, 1, 3), t.reshape(1, 1, 3), K, D)
+        return J[:, :8].copy(), J[:, 8:14].copy()
+    _, J = cv2.projectPoints(obj, r, t, camera.camera_matrix, camera.opencv_dist())
+    return J[:, 6 : 6 + len(intrinsic_names(camera.model))].copy(), J[:, :6].copy()
+
+
+def solve_jacobian(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The solve's Jacobian: intrinsic columns shared by every view, pose columns per view.
+
+    Args:
+        camera: the solved model.
+        views: V views; view v has N_v corners.
+        rvecs: (V, 3) float64 T_cam_board Rodrigues vectors.
+        tvecs: (V, 3) float64 T_cam_board translations, metres.
+
+    Returns:
+        J_intrinsics (2N, P) float64 with N = sum N_v (views stacked in order) and a list of V
+        J_pose arrays (2N_v, 6) float64.
+    """
+    rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
+    if not len(views) == rv.shape[0] == tv.shape[0]:
+        raise ValueError(f"expected one pose per view; got {len(views)} views, {rv.shape[0]} rvecs, {tv.shape[0]} tvecs")
+    parts = [view_jacobian(camera, v.object_points_m, rv[i], tv[i]) for i, v in enumerate(views)]
+    J_intr = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, len(intrinsic_names(camera.model))))
+    return J_intr, [p[1] for p in parts]
+
+
+def schur_update(information: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray) -> np.ndarray:
+    """Add one view to a marginal information matrix: S + A_v - B_v C_v^-1 B_v^T.
+
+    Each view's pose is its own, so marginalising views one by one is exact.
+
+    Args:
+        information: (P, P) float64 current S (unit noise).
+        J_intr: (2n, P) float64 the view's intrinsic Jacobian.
+        J_pose: (2n, 6) float64 the view's pose Jacobian.
+
+    Returns:
+        (P, P) float64 the new S.
+    """
+    B = J_intr.T @ J_pose  # (P, 6)
+    C = J_pose.T @ J_pose  # (6, 6)
+    # pinv: a view with < 3 corners has a singular pose block; its rows then add only what they fix.
+    S = information + J_intr.T @ J_intr - B @ np.linalg.pinv(C, rcond=1e-12, hermitian=True) @ B.T
+    return 0.5 * (S + S.T)
+
+
+def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:
+    """S = A - sum_v B_v C_v^-1 B_v^T, the intrinsics' information with all poses marginalised.
+
+    Args:
+        camera, views, rvecs, tvecs: as for `solve_jacobian`.
+
+    Returns:
+        (P, P) float64 information for unit pixel noise (per coordinate).
+    """
+    rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
+    S = np.zeros((len(intrinsic_names(camera.model)),) * 2)
+    for v, r, t in zip(views, rv, tv, strict=True):  # one pose per view, or ValueError
+        S = schur_update(S, *view_jacobian(camera, v.object_points_m, r, t))
+    return S
+
+
+def covariance_from_information(information: np.ndarray) -> np.ndarray:
+    """(P, P) S -> S^-1 that stays finite and positive when S is rank deficient.
+
+    Parameters are first scaled to unit diagonal (fx in px and k3 differ by 1e6 in scale, so a floor
+    on raw eigenvalues would clip real directions); scaled eigenvalues below 1e-12 of the largest are
+    raised to it, which turns an unobserved direction into a huge variance instead of NaN or < 0.
+    """
+    S = np.asarray(information, np.float64)
+    d = np.sqrt(np.clip(np.diag(S), 0, None))
+    d = np.where(d > 0, d, 1.0)  # an unobserved parameter keeps scale 1 and gets the floor below
+    w, V = np.linalg.eigh(S / d[:, None] / d[None, :])
+    w = np.maximum(w, max(float(w.max()), 1e-300) * _EIGEN_FLOOR)
+    inv = (V / w) @ V.T
+    return inv / d[:, None] / d[None, :]
+
+
+def intrinsic_covariance(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray, *, sigma_px: float) -> np.ndarray:
+    """Covariance of the free intrinsics with every pose marginalised: sigma^2 S^-1.
+
+    Args:
+        camera, views, rvecs, tvecs: the solve, as for `solve_jacobian`.
+        sigma_px: corner noise per coordinate: OpenCV's RMS (per corner) / sqrt(2), times
+            sqrt(2N / (2N - P - 6V)) for the fitted parameters, or a robust estimate.
+
+    Returns:
+        (P, P) float64 in the units of `intrinsic_names(camera.model)`.
+    """
+    return sigma_px**2 * covariance_from_information(marginal_information(camera, views, rvecs, tvecs))
+
+
+# --- projection uncertainty over the image ---------------------------------------------------
+
+
+def image_grid(image_size: tuple[int, int], grid: tuple[int, int] | None = None, *, step_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of grid cell centres, (GX,) and (GY,) float64.
+
+    Default: 32 columns and rows scaled to the aspect; `step_px` picks the counts from a cell size.
+
+    Example:
+        >>> gx, gy = image_grid((1280, 720))
+        >>> gx.size, gy.size, float(gx[0]), float(gy[-1])
+        (32, 18, 19.5, 699.5)
+    """
+    w, h = image_size
+    if grid is None:
+        if step_px is not None:
+            grid = (max(2, round(w / step_px)), max(2, round(h / step_px)))
+        else:  # 32 x 18 for 16:9
+            grid = (DEFAULT_GRID_X, max(2, round(DEFAULT_GRID_X * h / w)))
+    gx, gy = int(grid[0]), int(grid[1])
+    if gx < 1 or gy < 1:
+        raise ValueError(f"grid must have at least 1x1 cells, got {grid}")
+    return (np.arange(gx) + 0.5) * w / gx - 0.5, (np.arange(gy) + 0.5) * h / gy - 0.5
+
+
+def projection_jacobian(
+    camera: CameraModel, grid_x_px: np.ndarray, grid_y_px: np.ndarray, *,
+    distance_m: float | None = None, absorb_rotation: bool = True, fit_mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """d(pixel)/d(intrinsics) of the point seen at each grid pixel, optionally rotation-free.
+
+    With `absorb_rotation`, the perturbation operator M (2G, P) becomes M - R R_f^+ M_f, R (2G, 3)
+    being the pixel motion of a small common rotation of all rays and _f the rows in `fit_mask`: the
+    rotation fitted there (least squares) is removed everywhere. Fit where the board was seen: an
+    unobserved k3 moves the corners by 1000s of px, which would drag a whole-image fit and spoil the
+    centre (mrcal's projection_diff fits in a focus region for the same reason). This is the
+    infinite-distance form of mrcal's reference-frame fit; it needs no board poses.
+
+    Args:
+        camera: the model.
+        grid_x_px: (GX,) float pixel x of grid columns.
+        grid_y_px: (GY,) float pixel y of grid rows.
+        distance_m: where the point sits on its ray (default 10 m). An intrinsic change moves the
+            projection of a camera-frame point through its direction only, and only a rotation is
+            absorbed, so the result does not depend on it; it is kept for mrcal's interface.
+        absorb_rotation: remove the part of each perturbation a common rotation explains.
+        fit_mask: (GY, GX) bool grid points the rotation is fitted on; None or < 2 points: all.
+
+    Returns:
+        (GY, GX, 2, P) float64 px per parameter unit.
+    """
+    gx, gy = np.meshgrid(np.asarray(grid_x_px, np.float64), np.asarray(grid_y_px, np.float64))
+    rays = camera.unproject(np.stack([gx.reshape(-1), gy.reshape(-1)], axis=1))  # (G, 3) unit
+    if camera.model == "fisheye":
+        # OpenCV's fisheye projection divides by z, so rays beyond 90 deg need the numpy form.
+        J_intr, J_rot = _kannala_brandt_jacobian(camera, rays)
+    else:
+        d = DEFAULT_DISTANCE_M if distance_m is None else float(distance_m)
+        P = len(intrinsic_names(camera.model))
+        # At the identity pose the rvec columns are the pixel motion of a small rotation of the ray.
+        _, J = cv2.projectPoints(rays * d, np.zeros(3), np.zeros(3), camera.camera_matrix, camera.opencv_dist())
+        J_intr, J_rot = J[:, 6 : 6 + P], J[:, :3]
+    M = J_intr.reshape(-1, J_intr.shape[-1])  # (2G, P), rows u0, v0, u1, ...
+    if absorb_rotation:
+        R = J_rot.reshape(-1, 3)
+        rows = np.repeat(np.ones(gx.size, bool) if fit_mask is None else np.asarray(fit_mask, bool).reshape(-1), 2)
+        rows = rows if rows.sum() >= 4 else np.ones_like(rows)
+        Rf, Mf = R[rows], M[rows]
+        M = M - R @ (np.linalg.pinv(Rf.T @ Rf, hermitian=True) @ (Rf.T @ Mf))  # R_f^+ M_f via the 3x3 normal matrix
+    return M.reshape(gy.shape[0], gy.shape[1], 2, -1)
+
+
+def projection_sigma(jacobian: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Worst-direction 1-sigma: sqrt of the largest eigenvalue of J Sigma J^T per point.
+
+    Args:
+        jacobian: (..., 2, P) float64 from `projection_jacobian`.
+        covariance: (P, P) float64 intrinsic covariance.
+
+    Returns:
+        (...) float64 pixels.
+    """
+    V = np.einsum("...ip,pq,...jq->...ij", jacobian, covariance, jacobian)
+    a, b, c = V[..., 0, 0], V[..., 0, 1], V[..., 1, 1]
+    largest = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)  # closed form for a 2x2
+    return np.sqrt(np.clip(largest, 0, None))
+
+
+def projection_uncertainty(
+    camera: CameraModel, covariance: np.ndarray, *, grid_step_px: float | None = None, grid: tuple[int, int] | None = None,
+    distance_m: float | None = None, covered_mask_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    absorb_rotation: bool = True,
+) -> UncertaintyMap:
+    """The map a user reads: per grid pixel, how far its projection can be off (1 sigma, px).
+
+    Args:
+        camera: the solved model.
+        covariance: (P, P) float64 from `intrinsic_covariance`.
+        grid_step_px: cell size in pixels (ignored when `grid` is given).
+        grid: (GX, GY) counts; default 32 columns and rows scaled to the aspect.
+        distance_m: see `projection_jacobian` (default 10 m; no effect on the result).
+        covered_mask_fn: (grid_x (GX,), grid_y (GY,)) -> (GY, GX) bool where the board was seen,
+            e.g. `lambda gx, gy: covered_region_mask(size, corners, (gx.size, gy.size))`.
+            Without it nothing is marked covered (and `p95_covered_px` falls back to the whole map).
+        absorb_rotation: see `projection_jacobian`; the rotation is fitted on the covered points
+            (on the whole grid when none are covered).
+
+    Returns:
+        UncertaintyMap with sigma_px (GY, GX).
+    """
+    P = len(intrinsic_names(camera.model))
+    cov = np.asarray(covariance, np.float64)
+    if cov.shape != (P, P):
+        raise ValueError(f"a {camera.model} covariance is ({P}, {P}) over {intrinsic_names(camera.model)}, got {cov.shape}")
+    gx, gy = image_grid(camera.image_size, grid, step_px=grid_step_px)
+    covered = np.zeros((gy.size, gx.size), bool) if covered_mask_fn is None else np.asarray(covered_mask_fn(gx, gy), bool)
+    if covered.shape != (gy.size, gx.size):
+        raise ValueError(f"covered_mask_fn must return ({gy.size}, {gx.size}) bool, got {covered.shape}")
+    fit = covered if covered.any() else None
+    J = projection_jacobian(camera, gx, gy, distance_m=distance_m, absorb_rotation=absorb_rotation, fit_mask=fit)
+    return UncertaintyMap(grid_x_px=gx, grid_y_px=gy, sigma_px=projection_sigma(J, cov), covered=covered)
+
+
+def covered_region_mask(image_size: tuple[int, int], corner_sets: Sequence[np.ndarray], grid: tuple[int, int] | None = None) -> np.ndarray:
+    """Grid points inside the union of each view's corner hull, dilated by half a grid cell.
+
+    Args:
+        image_size: (width, height) pixels.
+        corner_sets: per view (N_v, 2) float detected corners, pixels.
+        grid: (GX, GY) counts, as for `image_grid`.
+
+    Returns:
+        (GY, GX) bool.
+    """
+    gx, gy = image_grid(image_size, grid)
+    pts = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 2)
+    radius = 0.5 * max(image_size[0] / gx.size, image_size[1] / gy.size)
+    mask = np.zeros(pts.shape[0], bool)
+    for corners in corner_sets:
+        c = np.asarray(corners, np.float32).reshape(-1, 2)
+        if c.shape[0]:
+            mask |= _distance_to_convex(pts, cv2.convexHull(c).reshape(-1, 2).astype(np.float64)) <= radius
+    return mask.reshape(gy.size, gx.size)
+
+
+def _distance_to_convex(pts: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """(G,) distance from (G, 2) points to a convex polygon (H, 2) given in hull order; 0 inside."""
+    a, b = hull, np.roll(hull, -1, axis=0)
+    e = b - a  # (H, 2)
+    rel = pts[:, None, :] - a[None]  # (G, H, 2)
+    t = np.clip(np.einsum("ghk,hk->gh", rel, e) / np.maximum((e * e).sum(1), 1e-12), 0, 1)
+    dist = np.linalg.norm(rel - t[..., None] * e[None], axis=2).min(axis=1)
+    if hull.shape[0] >= 3:
+        cross = e[None, :, 0] * rel[..., 1] - e[None, :, 1] * rel[..., 0]
+        inside = np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)
+        dist = np.where(inside, 0.0, dist)
+    return dist
+
+
+def _kannala_brandt_jacobian(camera: CameraModel, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G, 3) unit rays -> d(pixel)/d(intrinsics) (G, 2, 8) and d(pixel)/d(rotation) (G, 2, 3).
+
+    theta = atan2(r, z) holds beyond 90 deg, where OpenCV's atan(r / z) does not. Near the axis
+    theta / r -> 1 / z and the terms carrying 1 / r^2 vanish as X^2, so both have safe limits.
+    """
+    X, Y, Z = rays[:, 0], rays[:, 1], rays[:, 2]
+    (k1, k2, k3, k4), fx, fy = camera.dist_coeffs, camera.fx, camera.fy
+    r = np.hypot(X, Y)
+    small, theta = r < 1e-12, np.arctan2(r, Z)
+    safe_r, t2 = np.where(small, 1.0, r), theta * theta
+    h = np.where(small, 1.0 / np.where(small, Z, 1.0), theta / safe_r)  # theta / r
+    g = h * (1 + k1 * t2 + k2 * t2**2 + k3 * t2**3 + k4 * t2**4)  # theta_d / r
+    xd, yd = g * X, g * Y
+    one, zero = np.ones_like(X), np.zeros_like(X)
+    du = [xd, zero, one, zero] + [fx * X * h * t2**i for i in (1, 2, 3, 4)]
+    dv = [zero, yd, zero, one] + [fy * Y * h * t2**i for i in (1, 2, 3, 4)]
+    J_intr = np.stack([np.stack(du, axis=1), np.stack(dv, axis=1)], axis=1)
+    s = r * r + Z * Z
+    dtheta_d = 1 + 3 * k1 * t2 + 5 * k2 * t2**2 + 7 * k3 * t2**3 + 9 * k4 * t2**4
+    c = np.where(small, 0.0, (dtheta_d * Z / s - g) / (safe_r * safe_r))  # dg/dX = X c, dg/dY = Y c
+    dxd = np.stack([g + X * X * c, X * Y * c, -X * dtheta_d / s], axis=1)  # (G, 3)
+    dyd = np.stack([X * Y * c, g + Y * Y * c, -Y * dtheta_d / s], axis=1)
+    dq_dp = np.stack([fx * dxd, fy * dyd], axis=1)  # (G, 2, 3)
+    # p -> p + w x p, so dp/dw = -[p]x
+    dp_dw = np.stack([np.stack([zero, Z, -Y], 1), np.stack([-Z, zero, X], 1), np.stack([Y, -X, zero], 1)], axis=1)
+    return J_intr, dq_dp @ dp_dw
+
+
+# --- is a candidate view worth keeping? -------------------------------------------------------
+
+
+def pixel_variance_weight(jacobian: np.ndarray) -> np.ndarray:
+    """W (P, P) with trace(W Sigma) = mean over the grid of trace(J_q Sigma J_q^T), in px^2.
+
+    Plain trace(S^-1) adds px^2 (fx) to unitless^2 (k3); weighting by W scores a covariance by the
+    pixel variance it causes, which is what the user sees.
+
+    Args:
+        jacobian: (..., 2, P) float64 `projection_jacobian` on a coarse grid (8x5 suffices), with
+            fit_mask = the covered region once there is one.
+    """
+    M = jacobian.reshape(-1, jacobian.shape[-1])
+    return M.T @ M / (M.shape[0] // 2)
+
+
+def information_gain(information: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray, *, weight: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """New information and the relative drop of trace(S^-1) (or trace(W S^-1)) if the view is added.
+
+    Args:
+        information: (P, P) float64 current S (`marginal_information`).
+        J_intr: (2n, P) float64 the candidate's intrinsic Jacobian (`view_jacobian`, pose from PnP).
+        J_pose: (2n, 6) float64 the candidate's pose Jacobian.
+        weight: optional (P, P) `pixel_variance_weight`; None scores the plain trace.
+
+    Returns:
+        (P, P) float64 new S, and the drop in [0, 1] (0: the view adds nothing).
+    """
+    S_new = schur_update(information, J_intr, J_pose)
+    W = np.eye(S_new.shape[0]) if weight is None else weight
+    before = float(np.sum(W * covariance_from_information(information)))  # trace(W C), W and C symmetric
+    after = float(np.sum(W * covariance_from_information(S_new)))
+    return S_new, max(0.0, 1.0 - after / before) if before > 0 else 0.0
+
+
+def information_gain_p95(information: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray, *, jacobian: np.ndarray) -> tuple[np.ndarray, float]:
+    """As `information_gain`, scoring the relative drop of the uncertainty map's 95th percentile.
+
+    Args:
+        information, J_intr, J_pose: as for `information_gain`.
+        jacobian: (..., 2, P) float64 as for `pixel_variance_weight` (the noise scale cancels).
+
+    Returns:
+        (P, P) float64 new S, and the drop in [0, 1].
+    """
+    S_new = schur_update(information, J_intr, J_pose)
+    before = float(np.percentile(projection_sigma(jacobian, covariance_from_information(information)), 95))
+    after = float(np.percentile(projection_sigma(jacobian, covariance_from_information(S_new)), 95))
+    return S_new, max(0.0, 1.0 - after / before) if before > 0 else 0.0

@@ -1,0 +1,74 @@
+"""Replay speed: `calibcoach calibrate` on a folder versus the plain loop, measured in one run.
+
+The plain loop is what a user would write with OpenCV alone: imread + detectBoard on every frame,
+then one calibrateCamera over every frame with >= 6 corners. Both run in this process, one after
+the other, on the same files (the page cache is warmed first, so neither pays for the disk).
+
+    .venv/bin/python bench/replay_speed.py FOLDER [--runs 3]
+
+Prints one line per method and the ratio calibcoach / plain (the target is <= 0.5).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.replay import IMAGE_EXTENSIONS
+
+
+def plain_loop(files: list[Path], spec: BoardSpec) -> tuple[float, int]:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    board = spec.cv_board()
+    detector = cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), params)
+    start = time.perf_counter()
+    obj, img = [], []
+    size = None
+    for f in files:
+        grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        size = grey.shape[::-1]
+        corners, ids, _, _ = detector.detectBoard(grey)
+        if ids is not None and len(ids) >= 6:
+            o, i = board.matchImagePoints(corners, ids)
+            obj.append(o.reshape(-1, 1, 3))
+            img.append(i.reshape(-1, 1, 2))
+    cv2.calibrateCamera(obj, img, size, None, None)
+    return time.perf_counter() - start, len(obj)
+
+
+def calibcoach_run(folder: Path) -> float:
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "calibcoach.app", "calibrate", str(folder), "--out", out, "--quiet"],
+                       check=False, capture_output=True)
+        return time.perf_counter() - start
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--runs", type=int, default=3)
+    args = parser.parse_args()
+    files = sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    for f in files:  # warm the page cache for both
+        f.read_bytes()
+    plain = [plain_loop(files, BoardSpec()) for _ in range(args.runs)]
+    ours = [calibcoach_run(args.folder) for _ in range(args.runs)]
+    p, o = float(np.median([t for t, _ in plain])), float(np.median(ours))
+    print(f"plain loop (imread + detectBoard x {len(files)} + calibrateCamera on {plain[0][1]}): {p:.2f} s")
+    print(f"calibcoach calibrate (whole command, start-up included):          {o:.2f} s")
+    print(f"ratio calibcoach / plain: {o / p:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,200 @@
+"""The coverage map: which image regions, tilts and distances the accepted frames have shown.
+
+Three axes, each a set of cells with a requirement:
+- image region: a grid over the image (corners and edges are where distortion lives, so the outer
+  ring weighs more); a cell is met when enough corner observations have landed in it;
+- tilt: frontal, each of the four tilt directions beyond 20 deg, and a steep view (>= 35 deg) about
+  each axis -- tilted views separate focal length from distance, which frontal views cannot;
+- distance: the board's footprint in the image (sqrt of its corners' hull area over the image area):
+  far (< 0.18), mid and near (>= 0.30).
+Completeness is the weighted share of requirements met; `gain` says how much a candidate frame
+would add, which is what frame selection is built on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.pose import BoardPose
+
+TILT_STEER_DEG = 20.0  # a view counts for a tilt direction from here on
+TILT_STEEP_DEG = 35.0  # "steep" views: the method asks for 30-60 deg
+FAR_FOOTPRINT = 0.18  # sqrt(area fraction of the corners' hull) below which the board is "far" (~30% of a 16:9 image height)
+NEAR_FOOTPRINT = 0.30  # and from which it is "near" (an 8x11 board filling ~2/3 of the image height)
+TILT_DIRECTIONS = ("top_away", "bottom_away", "left_away", "right_away")
+TILT_CELLS = ("frontal", *TILT_DIRECTIONS, "steep_x", "steep_y")
+DISTANCE_CELLS = ("far", "mid", "near")
+TILT_HISTOGRAM_EDGES_DEG = (-90.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 90.0)
+_AXIS_WEIGHTS = {"region": 0.5, "tilt": 0.3, "distance": 0.2}
+
+
+@dataclass(frozen=True, slots=True)
+class CoverageRequirements:
+    corners_per_region_cell: int = 10  # corner observations that make a region cell "seen"
+    views_per_tilt_cell: int = 2
+    views_per_distance_cell: int = 2
+
+
+@dataclass(frozen=True, slots=True)
+class Contribution:
+    """What one frame would add to the map."""
+
+    region_counts: np.ndarray  # (rows, cols) float64 corners this frame puts in each cell
+    tilt_cells: tuple[str, ...]
+    distance_cell: str | None
+    tilt_x_deg: float
+    tilt_y_deg: float
+
+
+def region_grid_shape(image_size: tuple[int, int]) -> tuple[int, int]:
+    """(rows, cols) of the region grid: about square cells, 6 across a 16:9 image, 5 across 4:3."""
+    w, h = image_size
+    aspect = w / h
+    cols = 6 if aspect >= 1.5 else 5
+    rows = max(3, int(np.ceil(cols / aspect - 0.05)))
+    return rows, cols
+
+
+class CoverageMap:
+    """Accumulates accepted frames' contributions; says what is complete and what is missing."""
+
+    def __init__(self, image_size: tuple[int, int], requirements: CoverageRequirements | None = None) -> None:
+        self.image_size = image_size
+        self.requirements = requirements or CoverageRequirements()
+        self.rows, self.cols = region_grid_shape(image_size)
+        self.region_counts = np.zeros((self.rows, self.cols))  # (rows, cols) corner observations
+        self.tilt_counts = dict.fromkeys(TILT_CELLS, 0)
+        self.distance_counts = dict.fromkeys(DISTANCE_CELLS, 0)
+        self.tilt_x_history: list[float] = []
+        self.tilt_y_history: list[float] = []
+        self.footprints: list[float] = []
+        ring = np.ones((self.rows, self.cols))
+        ring[0, :] = ring[-1, :] = ring[:, 0] = ring[:, -1] = 2.0  # edges: twice the weight of the inside
+        for r, c in ((0, 0), (0, -1), (-1, 0), (-1, -1)):
+            ring[r, c] = 3.0  # corners: where distortion is strongest and hardest to reach
+        self.region_weights = ring / ring.sum()
+
+    # --- what a frame would add ---------------------------------------------------------------
+    def contribution(self, detection: Detection, pose: BoardPose | None) -> Contribution:
+        w, h = self.image_size
+        cols = np.clip((detection.corners_px[:, 0] / w * self.cols).astype(int), 0, self.cols - 1)
+        rows = np.clip((detection.corners_px[:, 1] / h * self.rows).astype(int), 0, self.rows - 1)
+        counts = np.zeros((self.rows, self.cols))
+        np.add.at(counts, (rows, cols), 1.0)
+        if pose is None:
+            return Contribution(counts, (), None, 0.0, 0.0)
+        cells: list[str] = []
+        tx, ty = pose.tilt_x_deg, pose.tilt_y_deg
+        if pose.tilt_deg < 15.0:
+            cells.append("frontal")
+        if tx >= TILT_STEER_DEG:
+            cells.append("top_away")
+        if tx <= -TILT_STEER_DEG:
+            cells.append("bottom_away")
+        if ty >= TILT_STEER_DEG:
+            cells.append("right_away")
+        if ty <= -TILT_STEER_DEG:
+            cells.append("left_away")
+        if abs(tx) >= TILT_STEEP_DEG:
+            cells.append("steep_x")
+        if abs(ty) >= TILT_STEEP_DEG:
+            cells.append("steep_y")
+        f = pose.footprint
+        distance = "far" if f < FAR_FOOTPRINT else "near" if f >= NEAR_FOOTPRINT else "mid"
+        return Contribution(counts, tuple(cells), distance, tx, ty)
+
+    def gain(self, c: Contribution, *, region_only: bool = False) -> float:
+        """How much of the unmet requirements this frame would fill, 0..1 of the whole map.
+
+        `region_only` scores the image regions alone: a look-alike of a kept frame must not fill
+        the "second view" of a tilt or distance cell, which asks for another view, not a copy.
+        """
+        req = self.requirements
+        need = req.corners_per_region_cell
+        before = np.minimum(self.region_counts / need, 1.0)
+        after = np.minimum((self.region_counts + c.region_counts) / need, 1.0)
+        region = float(np.sum((after - before) * self.region_weights))
+        if region_only:
+            return _AXIS_WEIGHTS["region"] * region
+        tilt = sum(1.0 for cell in c.tilt_cells if self.tilt_counts[cell] < req.views_per_tilt_cell) / (
+            len(TILT_CELLS) * req.views_per_tilt_cell
+        )
+        distance = 0.0
+        if c.distance_cell is not None and self.distance_counts[c.distance_cell] < req.views_per_distance_cell:
+            distance = 1.0 / (len(DISTANCE_CELLS) * req.views_per_distance_cell)
+        return _AXIS_WEIGHTS["region"] * region + _AXIS_WEIGHTS["tilt"] * tilt + _AXIS_WEIGHTS["distance"] * distance
+
+    def add(self, c: Contribution, footprint: float | None = None) -> None:
+        self.region_counts += c.region_counts
+        for cell in c.tilt_cells:
+            self.tilt_counts[cell] += 1
+        if c.distance_cell is not None:
+            self.distance_counts[c.distance_cell] += 1
+            self.tilt_x_history.append(c.tilt_x_deg)
+            self.tilt_y_history.append(c.tilt_y_deg)
+        if footprint is not None:
+            self.footprints.append(footprint)
+
+    # --- state --------------------------------------------------------------------------------
+    def region_fill(self) -> np.ndarray:
+        """(rows, cols) float64 in 0..1: how far each region cell is towards its requirement."""
+        return np.minimum(self.region_counts / self.requirements.corners_per_region_cell, 1.0)
+
+    def axis_completeness(self) -> dict[str, float]:
+        req = self.requirements
+        region = float(np.sum(self.region_fill() * self.region_weights))
+        tilt = float(np.mean([min(self.tilt_counts[c] / req.views_per_tilt_cell, 1.0) for c in TILT_CELLS]))
+        distance = float(np.mean([min(self.distance_counts[c] / req.views_per_distance_cell, 1.0) for c in DISTANCE_CELLS]))
+        return {"region": region, "tilt": tilt, "distance": distance}
+
+    def completeness(self) -> float:
+        """Weighted share of all requirements met, 0..1."""
+        parts = self.axis_completeness()
+        return float(sum(_AXIS_WEIGHTS[k] * v for k, v in parts.items()))
+
+    def is_complete(self) -> bool:
+        return self.completeness() >= 0.999
+
+    def missing_regions(self) -> list[tuple[int, int, float]]:
+        """(row, col, fill) of region cells below their requirement, the most important first."""
+        fill = self.region_fill()
+        cells = [(r, c, float(fill[r, c])) for r in range(self.rows) for c in range(self.cols) if fill[r, c] < 1.0]
+        return sorted(cells, key=lambda t: (-(1.0 - t[2]) * self.region_weights[t[0], t[1]], t[0], t[1]))
+
+    def missing_tilts(self) -> list[str]:
+        return [c for c in TILT_CELLS if self.tilt_counts[c] < self.requirements.views_per_tilt_cell]
+
+    def missing_distances(self) -> list[str]:
+        return [c for c in DISTANCE_CELLS if self.distance_counts[c] < self.requirements.views_per_distance_cell]
+
+    def tilt_histograms(self) -> dict[str, np.ndarray]:
+        """Signed tilt histograms (views per bin of TILT_HISTOGRAM_EDGES_DEG) about each axis."""
+        edges = np.asarray(TILT_HISTOGRAM_EDGES_DEG)
+        return {
+            "tilt_x": np.histogram(self.tilt_x_history, bins=edges)[0],
+            "tilt_y": np.histogram(self.tilt_y_history, bins=edges)[0],
+        }
+
+    def summary(self) -> dict[str, object]:
+        """A JSON-ready account of the map, for calibration.json and the viewer."""
+        parts = self.axis_completeness()
+        return {
+            "completeness": round(self.completeness(), 4),
+            "complete": self.is_complete(),
+            "axes": {k: round(v, 4) for k, v in parts.items()},
+            "region_grid": [self.rows, self.cols],
+            "region_fill": np.round(self.region_fill(), 3).tolist(),
+            "region_corner_counts": self.region_counts.astype(int).tolist(),
+            "tilt_views": dict(self.tilt_counts),
+            "distance_views": dict(self.distance_counts),
+            "tilt_histogram_edges_deg": list(TILT_HISTOGRAM_EDGES_DEG),
+            "tilt_histograms": {k: v.tolist() for k, v in self.tilt_histograms().items()},
+            "missing": {
+                "regions": [[r, c] for r, c, _ in self.missing_regions()],
+                "tilts": self.missing_tilts(),
+                "distances": self.missing_distances(),
+            },
+        }

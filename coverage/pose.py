@@ -1,0 +1,68 @@
+"""Where the board is in one frame: tilt, distance and footprint, from the current intrinsics.
+
+Before the first solve the intrinsics are a field-of-view guess, so tilt and distance are rough
+then; the image-space quantities (centre, footprint) never depend on the intrinsics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.detector import Detection
+from calibcoach.drivers.geometry import tilt_against_sight_deg
+from calibcoach.drivers.lens import CameraModel
+
+
+@dataclass(frozen=True, slots=True)
+class BoardPose:
+    """The board's pose and footprint in one frame."""
+
+    rvec: np.ndarray  # (3,) float64 Rodrigues, T_cam_board
+    tvec: np.ndarray  # (3,) float64 metres, T_cam_board
+    tilt_deg: float  # angle between the board normal and the line of sight to the board, 0 = facing the camera
+    tilt_x_deg: float  # about the image x axis: positive = top edge further away (see docs/conventions.md)
+    tilt_y_deg: float  # about the image y axis: positive = right edge further away
+    distance_m: float  # camera to the visible corners' centroid
+    centre_px: np.ndarray  # (2,) float64 centroid of the detected corners
+    footprint: float  # sqrt(hull area / image area) of the detected corners, 0..1 ("board size in the image")
+    fit_rms_px: float  # how well the board plane fits the corners with these intrinsics
+
+
+def corner_footprint(corners_px: np.ndarray, image_size: tuple[int, int]) -> float:
+    """sqrt(area of the corners' convex hull / image area): 1.0 fills the image."""
+    hull = cv2.convexHull(corners_px.reshape(-1, 1, 2).astype(np.float32))
+    return float(np.sqrt(max(cv2.contourArea(hull), 0.0) / (image_size[0] * image_size[1])))
+
+
+def estimate_pose(detection: Detection, camera: CameraModel) -> BoardPose | None:
+    """T_cam_board from one detection with fixed intrinsics; None when the corners do not fit a plane."""
+    if detection.corner_count < 4:
+        return None
+    rays = camera.unproject(detection.corners_px)
+    if np.any(rays[:, 2] <= 1e-3):
+        return None
+    normalised = (rays[:, :2] / rays[:, 2:3]).astype(np.float64).reshape(-1, 1, 2)
+    obj = detection.object_points_m.astype(np.float64).reshape(-1, 1, 3)
+    ok, rvec, tvec = cv2.solvePnP(obj, normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE if detection.corner_count >= 4 else 0)
+    if not ok or tvec[2, 0] <= 0:
+        return None
+    rvec, tvec = rvec.reshape(3), tvec.reshape(3)
+    projected = camera.project(detection.object_points_m, rvec, tvec)
+    fit_rms = float(np.sqrt(np.mean(np.sum((projected - detection.corners_px) ** 2, axis=1))))
+    R, _ = cv2.Rodrigues(rvec)
+    centre_cam = (R @ detection.object_points_m.astype(np.float64).T).T.mean(axis=0) + tvec
+    tilt, tilt_x, tilt_y = tilt_against_sight_deg(R[:, 2], centre_cam)
+    return BoardPose(
+        rvec=rvec,
+        tvec=tvec,
+        tilt_deg=tilt,
+        tilt_x_deg=tilt_x,
+        tilt_y_deg=tilt_y,
+        distance_m=float(np.linalg.norm(centre_cam)),
+        centre_px=detection.corners_px.astype(np.float64).mean(axis=0),
+        footprint=corner_footprint(detection.corners_px, camera.image_size),
+        fit_rms_px=fit_rms,
+    )

@@ -1,0 +1,250 @@
+"""Frame selection: keep a frame only when it is usable and adds something; count every rejection.
+
+Gates, cheapest first (each rejection is counted with its reason):
+1. at least 6 ChArUco corners (the method's minimum);
+2. not collinear: the corners span at least two board rows and two columns and a real area;
+3. still: the corners moved less than `max_speed_px_s` since the previous frame (motion blur and
+   rolling shutter bend corners by exactly the amount the board moves during readout);
+4. sharp: the estimated edge blur is below `max_blur_px`;
+5. diverse: not a near-duplicate of an accepted frame, and it fills unmet coverage or shrinks the
+   calibration's uncertainty. Twenty look-alike frames are worse than ten diverse ones.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.grid import Contribution, CoverageMap
+from calibcoach.coverage.pose import BoardPose
+
+REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred", "duplicate", "adds nothing", "frame limit")
+
+
+@dataclass(frozen=True, slots=True)
+class SelectorSettings:
+    min_corners: int = 6
+    min_spread: float = 0.25  # minor/major principal spread of the corners on the board; 0 = a line
+    max_speed_px_s: float = 25.0  # at 1280 px width (scaled): 0.5 px of smear in a 20 ms exposure
+    max_blur_px: float = 3.0  # estimated gaussian edge blur, px, whatever the other frames look like
+    max_blur_ratio: float = 2.0  # and at most this multiple of the median blur of the frames kept so far
+    min_coverage_gain: float = 0.0015  # share of the whole coverage map a frame must add
+    min_uncertainty_gain: float = 0.02  # relative drop of the intrinsics' variance a frame must bring
+    duplicate_centre: float = 0.06  # fraction of the image diagonal
+    duplicate_footprint: float = 0.15  # relative footprint difference
+    duplicate_tilt_deg: float = 8.0
+    max_frames: int = 60
+    keep_all_usable: bool = False  # a set of deliberate photos that fits the budget: keep every usable one
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    accepted: bool
+    reason: str  # "accepted" or one of REJECT_REASONS
+    detail: str = ""  # numbers behind the reason, e.g. "4 corners" or "41 px/s"
+    coverage_gain: float = 0.0
+    uncertainty_gain: float = 0.0
+    quality: float = 1.0  # weight of the frame's corners should it be used after all (0 = useless)
+
+
+@dataclass(frozen=True, slots=True)
+class AcceptedView:
+    frame_index: int
+    centre_px: np.ndarray  # (2,) float64
+    footprint: float
+    tilt_x_deg: float
+    tilt_y_deg: float
+
+
+def corner_spread(detection: Detection) -> float:
+    """Minor over major standard deviation of the corners on the board: 0 for a line, ~1 for a square patch.
+
+    Measured in board coordinates, not pixels, so perspective cannot make a line of corners look
+    like an area. Five corners down one column plus one beside it score ~0.15: such a view has
+    an ill-defined pose, and one of them was seen to send OpenCV's calibrateCamera from RMS 0.07 to
+    RMS 60 on an otherwise clean 32-view solve.
+    """
+    pts = detection.object_points_m[:, :2].astype(np.float64)
+    if pts.shape[0] < 3:
+        return 0.0
+    s = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+    return float(s[1] / max(s[0], 1e-9))
+
+
+def spans_rows_and_columns(detection: Detection, squares_x: int) -> bool:
+    """True when the corner ids cover at least two board rows and two board columns."""
+    per_row = squares_x - 1
+    rows = np.unique(detection.ids // per_row)
+    cols = np.unique(detection.ids % per_row)
+    return rows.size >= 2 and cols.size >= 2
+
+
+def board_motion_px(previous: Detection | None, current: Detection) -> float | None:
+    """Median displacement of the corners both frames share, px; None when they share fewer than 4."""
+    if previous is None or previous.corner_count == 0 or current.corner_count == 0:
+        return None
+    common, ia, ib = np.intersect1d(previous.ids, current.ids, return_indices=True)
+    if common.size < 4:
+        return None
+    return float(np.median(np.linalg.norm(previous.corners_px[ia] - current.corners_px[ib], axis=1)))
+
+
+def edge_blur_px(grey: np.ndarray, corners_px: np.ndarray) -> float:
+    """Estimated gaussian blur sigma of the board's edges, px.
+
+    For an edge of contrast C blurred by a gaussian of sigma s, the steepest gradient is
+    C / (s * sqrt(2 pi)); so s ~ C / (sqrt(2 pi) * g_max), with C and g_max taken as robust
+    percentiles inside the corners' bounding box. Scale-free, so it works near and far.
+    """
+    x0, y0 = np.floor(corners_px.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners_px.max(axis=0)).astype(int)
+    h, w = grey.shape
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1 + 1, w), min(y1 + 1, h)
+    roi = grey[y0:y1, x0:x1]
+    if roi.shape[0] < 8 or roi.shape[1] < 8:
+        return float("inf")
+    roi = roi.astype(np.float32)
+    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    g = np.sqrt(gx * gx + gy * gy)
+    g_max = float(np.percentile(g, 99.5))
+    contrast = float(np.percentile(roi, 95) - np.percentile(roi, 5))
+    if g_max <= 1e-6 or contrast < 10:
+        return float("inf")
+    # A perfectly sharp edge sampled by pixels still spreads over ~1 px: subtract that floor in quadrature.
+    sigma = contrast / (np.sqrt(2 * np.pi) * g_max)
+    return float(np.sqrt(max(sigma * sigma - 0.5**2, 0.0)))
+
+
+class FrameSelector:
+    """Decides frame by frame; owns the coverage map and the list of accepted views."""
+
+    def __init__(
+        self,
+        image_size: tuple[int, int],
+        *,
+        squares_x: int,
+        settings: SelectorSettings | None = None,
+        coverage: CoverageMap | None = None,
+    ) -> None:
+        self.image_size = image_size
+        self.settings = settings or SelectorSettings()
+        self.squares_x = squares_x
+        self.coverage = coverage or CoverageMap(image_size)
+        self.accepted: list[AcceptedView] = []
+        self.counts: dict[str, int] = dict.fromkeys(("accepted", *REJECT_REASONS), 0)
+        self._diag = float(np.hypot(*image_size))
+        self._blurs: list[float] = []  # edge blur of the frames kept, px
+        self._speed_limit = self.settings.max_speed_px_s * image_size[0] / 1280.0
+
+    def gate(self, detection: Detection) -> Decision | None:
+        """The hard per-frame gates (1-2): frames failing them are of no use at all. None = passed."""
+        s = self.settings
+        if detection.corner_count == 0:
+            return Decision(False, "no board", f"{detection.marker_ids.size} markers", quality=0.0)
+        if detection.corner_count < s.min_corners:
+            return Decision(False, "too few corners", f"{detection.corner_count} corners, need {s.min_corners}", quality=0.0)
+        spread = corner_spread(detection)
+        if spread < s.min_spread or not spans_rows_and_columns(detection, self.squares_x):
+            return Decision(False, "collinear", f"spread {spread:.2f}", quality=0.0)
+        return None
+
+    def blur_limit_px(self) -> float:
+        """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""
+        s = self.settings
+        if len(self._blurs) >= 3:
+            return min(s.max_blur_px, s.max_blur_ratio * float(np.median(self._blurs)))
+        return s.max_blur_px
+
+    def decide(
+        self,
+        frame_index: int,
+        detection: Detection,
+        pose: BoardPose | None,
+        *,
+        motion_px_s: float | None,
+        blur_px: float | None,
+        uncertainty_gain: Callable[[], float] | None = None,
+        just_appeared: bool = False,
+    ) -> tuple[Decision, Contribution | None]:
+        """Full decision for one frame; the caller commits accepted frames with `commit`.
+
+        Moving and softly blurred frames are rejected for the live capture (the person should hold
+        still), but keep a `quality` < 1: the weight their corners deserve if the final solve has
+        budget to spare (a moving board's corners are noisier, never worthless).
+        """
+        s = self.settings
+        gated = self.gate(detection)
+        if gated is not None:
+            return gated, None
+        if blur_px is not None and blur_px > s.max_blur_px:
+            return Decision(False, "blurred", f"edge blur {blur_px:.1f} px, limit {s.max_blur_px:.1f}", quality=0.0), None
+        quality = 1.0
+        if just_appeared:
+            # The frame before showed no board: it is still being brought in, and a move's last frame
+            # is smeared by the deceleration (0.4 px coherent corner shifts seen in simulation) while
+            # the speed to the next frame already looks still.
+            return Decision(False, "moving", "board just came into view", quality=0.25), None
+        if motion_px_s is not None and motion_px_s > self._speed_limit:
+            quality = min(quality, (self._speed_limit / motion_px_s) ** 2)
+            return Decision(False, "moving", f"{motion_px_s:.0f} px/s, limit {self._speed_limit:.0f}", quality=quality), None
+        blur_limit = self.blur_limit_px()
+        if blur_px is not None and blur_px > blur_limit:
+            quality = min(quality, (blur_limit / blur_px) ** 2)
+            return Decision(False, "blurred", f"edge blur {blur_px:.1f} px, limit {blur_limit:.1f}", quality=quality), None
+        if len(self.accepted) >= s.max_frames:
+            return Decision(False, "frame limit", f"{s.max_frames} frames kept already"), None
+        contribution = self.coverage.contribution(detection, pose)
+        cov_gain = self.coverage.gain(contribution)
+        if s.keep_all_usable:
+            return Decision(True, "accepted", f"usable photo, adds {cov_gain * 100:.1f}% coverage", cov_gain), contribution
+        twin = self._duplicate_of(detection, pose)
+        if twin is not None:
+            # a look-alike of a kept frame mostly re-counts the same corners in the same cells: only
+            # its image-region gain counts, and it must be clearly more than a new view needs
+            cov_gain = self.coverage.gain(contribution, region_only=True)
+        if cov_gain >= s.min_coverage_gain * (1.0 if twin is None else 5.0):
+            return Decision(True, "accepted", f"adds {cov_gain * 100:.1f}% coverage", coverage_gain=cov_gain), contribution
+        # No new coverage (or a look-alike of a kept frame): keep it only if it shrinks the uncertainty
+        # clearly more than an average kept frame would (1.5 / (V + 1) of the variance), so that
+        # look-alikes stop counting as soon as the data has them.
+        unc_gain = uncertainty_gain() if uncertainty_gain is not None else 0.0
+        needed = max(s.min_uncertainty_gain, 1.5 / (len(self.accepted) + 1))
+        if unc_gain >= needed:
+            return Decision(True, "accepted", f"shrinks uncertainty by {unc_gain * 100:.0f}%", cov_gain, unc_gain), contribution
+        if twin is not None:
+            return Decision(False, "duplicate", f"looks like frame {twin}; uncertainty -{unc_gain * 100:.1f}%", cov_gain, unc_gain), None
+        return Decision(False, "adds nothing", f"coverage +{cov_gain * 100:.2f}%, uncertainty -{unc_gain * 100:.1f}%", cov_gain, unc_gain), None
+
+    def record(self, decision: Decision) -> None:
+        self.counts[decision.reason] = self.counts.get(decision.reason, 0) + 1
+
+    def commit(self, frame_index: int, detection: Detection, pose: BoardPose | None, contribution: Contribution,
+               *, blur_px: float | None = None) -> None:
+        if blur_px is not None and np.isfinite(blur_px):
+            self._blurs.append(blur_px)
+        self.coverage.add(contribution, pose.footprint if pose is not None else None)
+        centre = detection.corners_px.astype(np.float64).mean(axis=0)
+        self.accepted.append(AcceptedView(
+            frame_index, centre, pose.footprint if pose else 0.0,
+            pose.tilt_x_deg if pose else 0.0, pose.tilt_y_deg if pose else 0.0,
+        ))
+
+    def _duplicate_of(self, detection: Detection, pose: BoardPose | None) -> int | None:
+        if pose is None:
+            return None
+        s = self.settings
+        centre = detection.corners_px.astype(np.float64).mean(axis=0)
+        for view in self.accepted:
+            if (
+                np.linalg.norm(view.centre_px - centre) < s.duplicate_centre * self._diag
+                and abs(view.footprint - pose.footprint) < s.duplicate_footprint * max(view.footprint, 1e-6)
+                and abs(view.tilt_x_deg - pose.tilt_x_deg) < s.duplicate_tilt_deg
+                and abs(view.tilt_y_deg - pose.tilt_y_deg) < s.duplicate_tilt_deg
+            ):
+                return view.frame_index
+        return None

@@ -1,0 +1,365 @@
+"""Replay sources: video files, folders of images and calibcoach recordings, behind `FrameSource`.
+
+Replays are how most calibrations start (a phone video, a folder of stills) and how the live
+pipeline is tested, so they must never stop half-way on one bad frame: undecodable frames go to
+`source.skipped` with a reason and the stream carries on. Problems that make a source useless
+(missing path, a folder without images, a file OpenCV cannot decode) are found when the source is
+opened and raised as `SourceError` with one sentence saying what was found and what to do.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter, deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from types import MappingProxyType
+
+import cv2
+import numpy as np
+
+from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo
+from calibcoach.drivers.errors import SourceError
+from calibcoach.drivers.recording import SESSION_FILE, read_session
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+_VIDEO_EXTENSIONS = (".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")  # for hints only
+_DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
+_LIVE_SPEC = re.compile(r"^(v4l2|depthai)(:.*)?$|^/dev/video\d+$")
+# Grey images stay (H, W), colour becomes (H, W, 3) BGR, 16-bit is scaled to 8-bit by OpenCV (>> 8).
+# EXIF orientation is ignored: calibration needs the sensor's own pixel grid, and a phone rotating
+# some stills would also make them a different size from the rest.
+_IMREAD_FLAGS = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_IGNORE_ORIENTATION
+
+
+def open_source(spec: str | Path) -> FrameSource:
+    """Open a replay source from a path: recording folder, image folder or video file.
+
+    Args:
+        spec: a folder holding session.json (recording), any other folder (images), or a video file.
+
+    Returns:
+        A `RecordingSource`, `ImageFolderSource` or `VideoFileSource`, already checked to hold frames.
+
+    Raises:
+        SourceError: the path is missing, holds nothing replayable, or names a live camera.
+    """
+    path = Path(spec).expanduser()
+    if _LIVE_SPEC.match(str(spec)) and not (path.is_file() or path.is_dir()):
+        raise SourceError(
+            f"{str(spec)!r} is a live camera, not a file or folder; live cameras are opened by "
+            f"`calibcoach live --source {spec}`"
+        )
+    if not path.exists():
+        raise SourceError(f"{path} does not exist; pass a video file, a folder of images or a recording folder")
+    if path.is_dir():
+        return RecordingSource(path) if (path / SESSION_FILE).is_file() else ImageFolderSource(path)
+    if not path.is_file():
+        raise SourceError(f"{path} is neither a file nor a folder; pass a video file, a folder of images or a recording")
+    if path.suffix.lower() in IMAGE_EXTENSIONS:
+        raise SourceError(f"{path} is a single image; pass the folder that holds the images instead ({path.parent})")
+    return VideoFileSource(path)
+
+
+class VideoFileSource(FrameSource):
+    """Frames of a video file, as OpenCV's VideoCapture decodes them: (H, W, 3) uint8 BGR.
+
+    A frame that fails to decode costs its index and is reported in `skipped`; after
+    `max_consecutive_failures` failures in a row the rest of the file is taken to be damaged and
+    reading stops, with one `skipped` entry saying so (a broken tail would otherwise be read for ever).
+    """
+
+    def __init__(self, path: str | Path, *, max_consecutive_failures: int = 25) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self._max_failures = max(1, int(max_consecutive_failures))
+        self._capture: cv2.VideoCapture | None = None
+        if not self.path.is_file():
+            raise SourceError(f"{self.path} is not a file; pass a video file")
+        if self.path.stat().st_size == 0:
+            raise SourceError(f"{self.path} is empty (0 bytes); the copy or recording probably failed, so copy it again")
+        probe = self._open()
+        try:
+            first = None
+            for _ in range(self._max_failures):  # a few bad leading frames are tolerated, as in frames()
+                ok, image = probe.read()
+                if ok and image is not None:
+                    first = image
+                    break
+            fps = probe.get(cv2.CAP_PROP_FPS)
+            count = probe.get(cv2.CAP_PROP_FRAME_COUNT)
+        finally:
+            probe.release()  # frames() reopens the file: the simplest rewind every backend supports
+        if first is None:
+            raise SourceError(
+                f"{self.path} opens as a video but none of its first {self._max_failures} frames decodes; convert it "
+                f"with ffmpeg (e.g. `ffmpeg -i {self.path.name} -c:v ffv1 out.mkv`) or pass a folder of images"
+            )
+        self._fps = float(fps) if math.isfinite(fps) and fps > 0 else None
+        self._frame_count = int(count) if math.isfinite(count) and count > 0 else None
+        self._image_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) pixels
+
+    def _open(self) -> cv2.VideoCapture:
+        capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
+            raise SourceError(
+                f"OpenCV cannot open {self.path} as a video (unknown or damaged format); convert it with ffmpeg "
+                f"(e.g. `ffmpeg -i {self.path.name} -c:v ffv1 out.mkv`) or pass a folder of images instead"
+            )
+        return capture
+
+    @property
+    def info(self) -> SourceInfo:
+        width, height = self._image_size
+        fps = f"{self._fps:g} fps" if self._fps else "unknown fps"
+        count = f"{self._frame_count} frames" if self._frame_count else "unknown length"
+        return SourceInfo(
+            description=f"video file {self.path.name} ({width}x{height}, {fps}, {count})",
+            kind="video", image_size=self._image_size, fps=self._fps, frame_count=self._frame_count,
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        self.skipped = []
+        capture = self._capture = self._open()
+        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
+        failed: list[int] = []  # indices of the current run of undecodable frames
+        index, previous_ns = 0, -1
+        try:
+            while True:
+                ok, image = capture.read()  # image: (H, W, 3) uint8 BGR
+                if not ok or image is None:
+                    if self._frame_count is not None and index >= self._frame_count:
+                        break  # the end the header announced
+                    failed.append(index)
+                    index += 1
+                    if len(failed) >= self._max_failures:
+                        # With no frame count a normal end looks the same, so only a known count is reported.
+                        if self._frame_count is not None:
+                            self.skipped.append(SkippedFrame(failed[0], "", (
+                                f"frames {failed[0]}-{failed[-1]} failed to decode in a row, so reading stopped; "
+                                f"the header announces {self._frame_count} frames, the rest of the file is damaged")))
+                        break
+                    continue
+                self.skipped += [SkippedFrame(i, "", "frame could not be decoded (damaged video data)") for i in failed]
+                failed.clear()
+                timestamp_ns = self._timestamp_ns(capture, index, previous_ns, period_ns)
+                yield Frame(index=index, timestamp_ns=timestamp_ns, image=image)
+                previous_ns = timestamp_ns
+                index += 1
+        finally:
+            capture.release()
+            self._capture = None
+
+    @staticmethod
+    def _timestamp_ns(capture: cv2.VideoCapture, index: int, previous_ns: int, period_ns: float) -> int:
+        """The container's time of the frame just read if it is sane (finite, increasing), else index / fps.
+
+        Some backends report 0 ms for every frame, and FFmpeg reports 0 after a failed decode.
+        """
+        position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
+        if math.isfinite(position_ms) and position_ms >= 0:
+            position_ns = round(position_ms * 1e6)
+            if index == 0 or position_ns > previous_ns:
+                return position_ns
+        return round(index * period_ns)
+
+    def close(self) -> None:
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
+
+
+class ImageFolderSource(FrameSource):
+    """The images of one folder in natural order (cal2 before cal10), each a frame named by its file.
+
+    Hidden files (".DS_Store", macOS "._cal1.png") are ignored. Images that do not decode, or whose
+    size differs from the first decodable image's, go to `skipped` with the reason. Without `fps`,
+    timestamps advance at 30 fps (info.fps stays None so nobody mistakes it for a measured rate).
+    """
+
+    def __init__(self, path: str | Path, *, fps: float | None = None) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self._fps = fps
+        if not self.path.is_dir():
+            raise SourceError(f"{self.path} is not a folder; pass a folder of images")
+        self._files = sorted(
+            (p for p in self.path.iterdir()
+             if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file()),
+            key=_natural_key,
+        )
+        if not self._files:
+            raise SourceError(_no_images_message(self.path))
+        first = next((image for image in map(_read_image, self._files) if image is not None), None)
+        if first is None:
+            raise SourceError(
+                f"none of the {len(self._files)} images in {self.path} decodes (e.g. {self._files[0].name}); "
+                "check that they are complete image files, not damaged or still being copied"
+            )
+        self._image_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) pixels
+
+    @property
+    def info(self) -> SourceInfo:
+        width, height = self._image_size
+        return SourceInfo(
+            description=f"folder {self.path.name} ({len(self._files)} images, {width}x{height})",
+            kind="folder", image_size=self._image_size, fps=self._fps, frame_count=len(self._files),
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        self.skipped = []
+        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
+        reference: tuple[str, tuple[int, int]] | None = None  # (file name, (width, height)) of the first image
+        for (index, path), image in zip(enumerate(self._files), _decoded_ahead(self._files), strict=True):
+            # image: (H, W) uint8 grey or (H, W, 3) uint8 BGR, or None
+            if image is None:
+                self.skipped.append(SkippedFrame(index, path.name, _unreadable_reason(path)))
+                continue
+            size = (int(image.shape[1]), int(image.shape[0]))
+            if reference is None:
+                reference = (path.name, size)
+            elif size != reference[1]:
+                self.skipped.append(SkippedFrame(index, path.name, (
+                    f"image is {size[0]}x{size[1]} but the first image ({reference[0]}) is "
+                    f"{reference[1][0]}x{reference[1][1]}; all images must share one camera resolution")))
+                continue
+            yield Frame(index=index, timestamp_ns=round(index * period_ns), image=image, name=path.name)
+
+
+class RecordingSource(FrameSource):
+    """A calibcoach recording (docs/recording-format.md), replayed with its controls and board.
+
+    A recording cut off by a crash replays from frames.jsonl; frames whose PNG is missing, damaged
+    or of the wrong size go to `skipped`, as do unusable lines of the frame list.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__()
+        self.path = Path(path)
+        contents = read_session(self.path)
+        if not contents.entries:
+            raise SourceError(
+                f"recording {self.path} lists no usable frames (it was probably stopped before the first frame "
+                "was saved); record the session again"
+            )
+        self._contents = contents
+        header = contents.header
+        camera = header["camera"]
+        self._image_size = (int(camera["image_size"][0]), int(camera["image_size"][1]))  # (width, height) pixels
+        fps = camera.get("fps")
+        self._fps = float(fps) if isinstance(fps, int | float) and fps > 0 else None
+        self._camera_id = str(camera.get("id", ""))
+        self._controls = MappingProxyType(dict(header.get("controls") or {}))
+        board = header.get("board")
+        self._board = MappingProxyType(dict(board)) if isinstance(board, dict) else None
+
+    @property
+    def info(self) -> SourceInfo:
+        width, height = self._image_size
+        count = len(self._contents.entries)
+        state = "" if self._contents.complete else ", cut off before it was closed"
+        return SourceInfo(
+            description=f"recording {self.path.name} ({self._camera_id}, {width}x{height}, {count} frames{state})",
+            kind="recording", camera_id=self._camera_id, image_size=self._image_size, fps=self._fps,
+            frame_count=count, controls=self._controls, board=self._board,
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        self.skipped = list(self._contents.problems)
+        paths = [self.path / entry["file"] for entry in self._contents.entries]
+        # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3).
+        for entry, path, image in zip(self._contents.entries, paths, _decoded_ahead(paths, cv2.IMREAD_UNCHANGED), strict=True):
+            if image is None:
+                self.skipped.append(SkippedFrame(entry["index"], path.name, _unreadable_reason(path)))
+                continue
+            size = (int(image.shape[1]), int(image.shape[0]))
+            if size != self._image_size or image.dtype != np.uint8:
+                self.skipped.append(SkippedFrame(entry["index"], path.name, (
+                    f"frame is {size[0]}x{size[1]} {image.dtype} but the recording is "
+                    f"{self._image_size[0]}x{self._image_size[1]} uint8")))
+                continue
+            yield Frame(index=entry["index"], timestamp_ns=entry["timestamp_ns"], image=image, name=path.name,
+                        controls=MappingProxyType(dict(entry["controls"])))
+
+
+# --- helpers ----------------------------------------------------------------------------------
+
+
+def _natural_key(path: Path) -> tuple[tuple[tuple[int, int | str], ...], str]:
+    """Sort key comparing digit runs as numbers, case-insensitively: cal2 < cal10 < Cal11."""
+    parts = re.split(r"(\d+)", path.name.lower())
+    return tuple((0, int(p)) if p.isdigit() else (1, p) for p in parts if p), path.name
+
+
+_DECODE_WORKERS = 2  # PNG/JPEG decoding releases the GIL; a 720p PNG takes ~9 ms, as long as detection
+_DECODE_AHEAD = 8  # frames decoded ahead of the consumer (~7 MB at 720p grey)
+
+
+def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS) -> Iterator[np.ndarray | None]:
+    """`_read_image` of every path, in order, decoded on worker threads a few frames ahead.
+
+    Replay is otherwise bound by decoding on the consumer's thread (half of a 784-frame replay's
+    time was imdecode); the consumer never waits once the pipeline is full.
+    """
+    with ThreadPoolExecutor(max_workers=_DECODE_WORKERS, thread_name_prefix="decode") as pool:
+        pending: deque[Future[np.ndarray | None]] = deque()
+        try:
+            for path in paths:
+                pending.append(pool.submit(_read_image, path, flags))
+                if len(pending) >= _DECODE_AHEAD:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+
+def _read_image(path: Path, flags: int = _IMREAD_FLAGS) -> np.ndarray | None:
+    """Decode an image file, or None if it is missing, empty or not decodable (never raises)."""
+    try:
+        data = np.fromfile(path, np.uint8)  # imdecode, not imread: no path-encoding trouble, no stderr noise
+    except OSError:
+        return None
+    if data.size == 0:
+        return None
+    image = cv2.imdecode(data, flags)
+    if image is None or image.ndim not in (2, 3):
+        return None
+    return image
+
+
+def _unreadable_reason(path: Path) -> str:
+    if not path.exists():
+        return "file is missing"
+    if path.stat().st_size == 0:
+        return "file is empty (0 bytes)"
+    return f"file does not decode as an image (damaged, truncated, or not really a {path.suffix} file)"
+
+
+def _no_images_message(folder: Path) -> str:
+    """One sentence: which extensions were looked for, what the folder holds instead, what to pass."""
+    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    files = [p for p in entries if p.is_file()]
+    folders = [p for p in entries if p.is_dir()]
+    counts = Counter(p.suffix.lower() or "extension-less" for p in files)
+    parts = [f"{n} {suffix} file{'s' if n != 1 else ''}" for suffix, n in counts.most_common(4)]
+    if len(counts) > 4:
+        parts.append(f"{sum(counts.values()) - sum(n for _, n in counts.most_common(4))} other files")
+    if folders:
+        parts.append(f"{len(folders)} folder{'s' if len(folders) != 1 else ''}")
+    found = "it is empty" if not parts else "it contains " + (
+        parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1])
+    videos = sorted(p for p in files if p.suffix.lower() in _VIDEO_EXTENSIONS)
+    image_folders = sorted(d for d in folders if any(
+        p.suffix.lower() in IMAGE_EXTENSIONS for p in d.iterdir() if p.is_file()))
+    if videos:
+        advice = f"pass the video file itself, e.g. {videos[0]}"
+    elif image_folders:
+        advice = f"pass the folder that holds the images, e.g. {image_folders[0]}"
+    else:
+        advice = "pass the folder that holds the calibration images"
+    looked_for = ", ".join(IMAGE_EXTENSIONS)
+    return f"{folder} holds no images (looked for {looked_for}); {found}; {advice}"

@@ -1,0 +1,138 @@
+"""The command line on bad input and on real captures: clear one-line errors, honest verdicts."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.app.cli import main
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(err: str, *needles: str) -> None:
+    lines = [ln for ln in err.splitlines() if ln.startswith("calibcoach: error:")]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_missing_path(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run_cli(capsys, "calibrate", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "does not exist")
+
+
+def test_empty_video_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    code, _, err = run_cli(capsys, "calibrate", str(tmp_path / "empty.mp4"), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "empty")
+
+
+def test_corrupt_video_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "junk.avi").write_bytes(np.random.default_rng(0).bytes(20000))
+    code, _, err = run_cli(capsys, "calibrate", str(tmp_path / "junk.avi"), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "junk.avi")
+
+
+def test_folder_without_images(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "notes.txt").write_text("x")
+    code, _, err = run_cli(capsys, "calibrate", str(tmp_path / "in"), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "no images")
+
+
+def test_images_without_any_board(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "grey"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    for i in range(4):
+        cv2.imwrite(str(folder / f"{i}.png"), rng.integers(0, 255, (240, 320), np.uint8))
+    code, _, err = run_cli(capsys, "calibrate", str(folder), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "no board corners were found in any of the 4 frames")
+    assert not (tmp_path / "o" / "camera_matrix.npy").exists()
+
+
+def test_wrong_dictionary_on_a_real_capture(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    video = shared_data / "caliscope_webcam_charuco_4x5" / "video" / "cam_0.mp4"
+    code, _, err = run_cli(capsys, "calibrate", str(video), "--out", str(tmp_path / "o"),
+                           "--squares", "4x5", "--square-mm", "54", "--marker-mm", "40.5", "--dictionary", "DICT_5X5_100")
+    assert code == 2
+    assert_one_line_error(err, "DICT_4X4", "--dictionary")
+
+
+def test_chessboard_photos_are_not_a_charuco_board(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run_cli(capsys, "calibrate", str(shared_data / "boofcv_sony_hx5v_chess"), "--out", str(tmp_path / "o"))
+    assert code == 2
+    assert_one_line_error(err, "no ArUco markers")
+
+
+def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    root = shared_data / "caliscope_webcam_charuco_4x5"
+    out = tmp_path / "o"
+    code, stdout, err = run_cli(capsys, "calibrate", str(root / "video" / "cam_0.mp4"), "--board", str(root / "charuco.toml"),
+                                "--out", str(out), "--quiet")
+    assert "inverted print" in err
+    assert code == 3
+    data = json.loads((out / "calibration.json").read_text())
+    assert data["verdict"]["grade"] == "insufficient" and data["verdict"]["trusted"] is False
+    assert data["board"]["inverted"] is True
+    assert not (out / "camera_matrix.npy").exists()
+    assert "NOT written" in stdout
+    code, _, _ = run_cli(capsys, "calibrate", str(root / "video" / "cam_0.mp4"), "--board", str(root / "charuco.toml"),
+                         "--out", str(out), "--quiet", "--accept-partial")
+    assert code == 3
+    K = np.load(out / "camera_matrix.npy")
+    assert K.shape == (3, 3) and 700 < K[0, 0] < 1100
+
+
+def test_machine_vision_photos_match_the_authors_intrinsics(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o"
+    code, _, _ = run_cli(capsys, "calibrate", str(shared_data / "pycamset_charuco_3cam" / "2"), "--out", str(out), "--quiet",
+                         "--squares", "20x20", "--square-mm", "4", "--marker-mm", "3.2", "--dictionary", "DICT_4X4_1000")
+    data = json.loads((out / "calibration.json").read_text())
+    K = np.array(data["camera_matrix"])
+    # authors: fx 2828.19 fy 2837.69 cx 665.72 cy 502.43; the narrow lens leaves cx/cy loose (std ~3.5 px)
+    assert K[0, 0] == pytest.approx(2828.19, rel=0.01)
+    assert K[1, 1] == pytest.approx(2837.69, rel=0.01)
+    assert abs(K[0, 2] - 665.72) < 5 * data["intrinsic_std"]["cx"]
+    assert abs(K[1, 2] - 502.43) < 5 * data["intrinsic_std"]["cy"]
+    assert data["model"] == "pinhole"
+    assert data["frames_used"] >= 18
+    # the board never left the middle of the image: the verdict must not trust it, whatever the RMS
+    assert code == 3 and data["verdict"]["trusted"] is False
+
+
+def test_scale_and_board_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from calibcoach.app.outputs.files import load_camera, write_calibration_json
+    from calibcoach.drivers.lens import CameraModel
+
+    camera = CameraModel("pinhole", [[900, 0, 639.5], [0, 900, 359.5], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1280, 720))
+    write_calibration_json(tmp_path / "calibration.json", {
+        "model": "pinhole", "image_size": [1280, 720], "camera_matrix": camera.camera_matrix, "dist_coeffs": camera.dist_coeffs,
+    })
+    code, out, _ = run_cli(capsys, "scale", str(tmp_path / "calibration.json"), "--to", "640x360", "--out", str(tmp_path / "s"))
+    assert code == 0
+    half = load_camera(tmp_path / "s" / "calibration.yaml")
+    assert half.fx == pytest.approx(450.0) and half.principal_point == pytest.approx((319.5, 179.5))
+    np.testing.assert_allclose(half.dist_coeffs, camera.dist_coeffs)
+    code, _, _ = run_cli(capsys, "scale", str(tmp_path / "calibration.json"), "--crop", "100,60,1080,600", "--out", str(tmp_path / "c"))
+    assert code == 0
+    assert load_camera(tmp_path / "c" / "calibration.yaml").principal_point == pytest.approx((539.5, 299.5))
+    code, _, err = run_cli(capsys, "scale", str(tmp_path / "calibration.json"), "--to", "640x480", "--out", str(tmp_path / "x"))
+    assert code == 2 and "aspect ratio" in err
+    code, out, _ = run_cli(capsys, "board", "--out", str(tmp_path / "board.svg"))
+    assert code == 0 and "30.01" in (tmp_path / "board.svg").read_text()

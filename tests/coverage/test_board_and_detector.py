@@ -1,0 +1,112 @@
+"""BoardSpec validation and the detector's automatic print variants and mismatch diagnosis."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.coverage.board import BoardSpec, dictionary_id
+from calibcoach.coverage.detector import CharucoBoardDetector, diagnose_board_mismatch
+from calibcoach.drivers.errors import BoardError
+
+
+def board_photo(spec: BoardSpec, *, legacy: bool = False, tilt: float = 0.12) -> np.ndarray:
+    """The board printed by OpenCV, put in a 1280x720 frame under a mild perspective."""
+    flat = spec.cv_board(legacy=legacy).generateImage((440, 605), marginSize=20)
+    h, w = flat.shape
+    src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    dst = np.float32([[400, 60], [400 + w * (1 - tilt), 90], [400 + w * (1 - tilt), 60 + h - 30], [400, 60 + h]])
+    H = cv2.getPerspectiveTransform(src, dst)
+    return cv2.warpPerspective(flat, H, (1280, 720), borderValue=128)
+
+
+def test_default_board_is_the_methods_board() -> None:
+    spec = BoardSpec()
+    assert (spec.squares_x, spec.squares_y, spec.square_mm, spec.marker_mm, spec.dictionary) == (8, 11, 30.01, 22.01, "DICT_5X5_100")
+    assert spec.corner_count == 70
+    assert spec.corner_points_m()[1] == pytest.approx([0.06002, 0.03001, 0.0])
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"marker_mm": 31.0}, "smaller than the square"),
+    ({"dictionary": "DICT_9X9_1"}, "unknown ArUco dictionary"),
+    ({"squares_x": 20, "squares_y": 20, "dictionary": "DICT_4X4_50"}, "has only 50"),
+])
+def test_bad_board_specs_say_what_to_pass(kwargs: dict, message: str) -> None:
+    with pytest.raises(BoardError, match=message):
+        BoardSpec(**kwargs)
+
+
+def test_dictionary_names_are_forgiving() -> None:
+    assert dictionary_id("5x5_100") == dictionary_id("DICT_5X5_100") == cv2.aruco.DICT_5X5_100
+    assert BoardSpec(dictionary="4x4_1000").dictionary == "DICT_4X4_1000"
+
+
+def test_board_toml_ours_and_caliscopes(tmp_path) -> None:
+    ours = tmp_path / "board.toml"
+    ours.write_text('squares_x = 5\nsquares_y = 7\nsquare_mm = 40.0\nmarker_mm = 30.0\ndictionary = "DICT_4X4_50"\n')
+    assert BoardSpec.from_toml(ours) == BoardSpec(5, 7, 40.0, 30.0, "DICT_4X4_50")
+    theirs = tmp_path / "charuco.toml"
+    theirs.write_text('columns = 4\nrows = 5\ndictionary = "DICT_4X4_1000"\naruco_scale = 0.75\nsquare_size_override_cm = 5.4\ninverted = true\n')
+    spec = BoardSpec.from_toml(theirs)
+    assert (spec.squares_x, spec.squares_y, spec.square_mm, spec.marker_mm, spec.inverted) == (4, 5, 54.0, 40.5, True)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("squares_x = 5\nsquare_size = 3\n")
+    with pytest.raises(BoardError, match="unknown keys"):
+        BoardSpec.from_toml(bad)
+
+
+def test_detector_finds_all_corners_with_subpixel_accuracy() -> None:
+    spec = BoardSpec()
+    det = CharucoBoardDetector(spec).detect(board_photo(spec))
+    assert det.corner_count == 70
+    assert det.corners_px.shape == (70, 2) and det.object_points_m.shape == (70, 3)
+    # a flat print under perspective: the corners must fit one homography to sub-pixel accuracy
+    H, _ = cv2.findHomography(det.object_points_m[:, :2].astype(np.float64), det.corners_px.astype(np.float64))
+    mapped = cv2.perspectiveTransform(det.object_points_m[:, :2].reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+    error = np.linalg.norm(mapped - det.corners_px, axis=1)
+    # (the warp's bilinear resampling itself costs ~0.1 px; the simulator tests hold the tight bound)
+    assert np.median(error) < 0.2 and np.max(error) < 0.45
+
+
+def test_inverted_print_is_detected_and_reported() -> None:
+    spec = BoardSpec()
+    detector = CharucoBoardDetector(spec)
+    det = detector.detect(255 - board_photo(spec))
+    assert det.corner_count == 70
+    assert detector.variant_found == "inverted print" and detector.spec.inverted is True
+
+
+def test_legacy_pattern_is_detected_on_an_even_row_board() -> None:
+    spec = BoardSpec(squares_x=7, squares_y=10, square_mm=30.0, marker_mm=22.0)
+    photo = board_photo(spec, legacy=True)
+    assert CharucoBoardDetector(BoardSpec(7, 10, 30.0, 22.0, legacy=False, inverted=False)).detect(photo).corner_count < 6
+    detector = CharucoBoardDetector(spec)
+    assert detector.detect(photo).corner_count == 54
+    assert detector.variant_found == "legacy pattern"
+
+
+@pytest.mark.parametrize(("wrong", "advice"), [
+    (BoardSpec(dictionary="DICT_4X4_100"), "pass --dictionary DICT_5X5_100"),
+    (BoardSpec(squares_x=11, squares_y=8), "--squares 8x11"),
+    (BoardSpec(squares_x=6, squares_y=7), "ids up to 43"),
+])
+def test_wrong_board_gets_a_one_line_fix(wrong: BoardSpec, advice: str) -> None:
+    photo = board_photo(BoardSpec())
+    assert CharucoBoardDetector(wrong).detect(photo).corner_count < 6
+    error = diagnose_board_mismatch(wrong, [photo])
+    assert error is not None and advice in str(error)
+    assert "\n" not in str(error)
+
+
+def test_no_markers_at_all_gives_no_diagnosis() -> None:
+    assert diagnose_board_mismatch(BoardSpec(), [np.full((720, 1280), 128, np.uint8)]) is None
+
+
+def test_plain_print_of_an_even_row_board_is_not_called_inverted_or_legacy() -> None:
+    # inverted-marker mode also finds normal markers; the plain variant must win the tie
+    spec = BoardSpec(squares_x=7, squares_y=10, square_mm=30.0, marker_mm=22.0)
+    detector = CharucoBoardDetector(spec)
+    assert detector.detect(board_photo(spec)).corner_count == 54
+    assert detector.variant_found == "standard pattern"

@@ -1,0 +1,178 @@
+"""Pose, coverage map, frame selection and guidance on exact synthetic detections (no images).
+
+Detections are the board's corners projected through a known lens at poses placed in image space
+with the simulator's `place_board`, so every expectation below is a geometric fact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.grid import CoverageMap
+from calibcoach.coverage.guidance import next_guidance, region_words
+from calibcoach.coverage.pose import estimate_pose
+from calibcoach.coverage.select import FrameSelector, SelectorSettings, board_motion_px, corner_spread
+from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.sim_paths import place_board
+
+SPEC = BoardSpec()
+CAMERA = CameraModel("pinhole", [[900, 0, 640], [0, 900, 360], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1280, 720))
+W, H = CAMERA.image_size
+
+
+def detection_at(centre_px, distance_m=0.9, *, tilt_x=0.0, tilt_y=0.0, keep=None) -> Detection:
+    rvec, tvec = place_board(CAMERA, SPEC, centre_px, distance_m, tilt_x_deg=tilt_x, tilt_y_deg=tilt_y)
+    obj = SPEC.corner_points_m()
+    px = CAMERA.project(obj, rvec, tvec)
+    inside = (px[:, 0] >= 0) & (px[:, 0] <= W - 1) & (px[:, 1] >= 0) & (px[:, 1] <= H - 1)
+    if keep is not None:
+        inside &= keep
+    ids = np.nonzero(inside)[0].astype(np.int32)
+    return Detection(px[inside].astype(np.float32), ids, obj[inside].astype(np.float32), np.arange(44, dtype=np.int32))
+
+
+@pytest.mark.parametrize(("tilt_x", "tilt_y"), [(0, 0), (35, 0), (-35, 0), (0, 40), (0, -40)])
+def test_pose_recovers_signed_tilts(tilt_x: float, tilt_y: float) -> None:
+    pose = estimate_pose(detection_at((500, 300), tilt_x=tilt_x, tilt_y=tilt_y), CAMERA)
+    assert pose is not None
+    assert pose.tilt_x_deg == pytest.approx(tilt_x, abs=1.5)
+    assert pose.tilt_y_deg == pytest.approx(tilt_y, abs=1.5)
+    assert pose.tilt_deg == pytest.approx(max(abs(tilt_x), abs(tilt_y)), abs=1.5)
+    assert pose.fit_rms_px < 0.01  # float32 corners
+
+
+def test_compound_tilt_keeps_both_signs() -> None:
+    pose = estimate_pose(detection_at((500, 300), tilt_x=-30, tilt_y=30), CAMERA)
+    assert pose is not None and pose.tilt_x_deg < -25 and pose.tilt_y_deg > 25 and pose.tilt_deg > 40
+
+
+def test_tilt_is_measured_against_the_line_of_sight() -> None:
+    # a board held facing the camera in the image corner is frontal, although it is not parallel to the sensor
+    pose = estimate_pose(detection_at((200, 120), 1.2), CAMERA)
+    assert pose is not None and pose.tilt_deg < 1.0
+
+
+def test_footprint_shrinks_with_distance() -> None:
+    near = estimate_pose(detection_at((640, 360), 0.6), CAMERA)
+    far = estimate_pose(detection_at((640, 360), 1.6), CAMERA)
+    assert near is not None and far is not None
+    assert far.footprint == pytest.approx(near.footprint * 0.6 / 1.6, rel=0.05)
+    assert far.distance_m == pytest.approx(1.6, rel=0.02)
+
+
+def test_coverage_counts_corners_where_they_land_and_credits_tilt_and_distance() -> None:
+    cmap = CoverageMap((W, H))
+    assert (cmap.rows, cmap.cols) == (4, 6)
+    det = detection_at((150, 100), 1.4, tilt_x=40)
+    c = cmap.contribution(det, estimate_pose(det, CAMERA))
+    assert c.region_counts[0, 0] > 0 and c.region_counts[-1, -1] == 0
+    assert set(c.tilt_cells) == {"top_away", "steep_x"}
+    assert c.distance_cell == "far"
+    before = cmap.completeness()
+    gain = cmap.gain(c)
+    cmap.add(c)
+    assert cmap.completeness() == pytest.approx(before + gain)
+    assert cmap.gain(c) < gain  # the same frame again adds less
+
+
+def test_a_diverse_capture_completes_the_map_and_frontal_centred_frames_never_do() -> None:
+    diverse = CoverageMap((W, H))
+    frontal = CoverageMap((W, H))
+    xs, ys = np.linspace(120, W - 120, 6), np.linspace(100, H - 100, 4)
+    tilts = [(0, 0), (35, 0), (-35, 0), (0, 40), (0, -40), (25, 25)]
+    for i, (x, y) in enumerate((x, y) for y in ys for x in xs):
+        for dist in (0.45, 0.85, 1.6):
+            tx, ty = tilts[(i + int(dist * 10)) % len(tilts)]
+            det = detection_at((x, y), dist, tilt_x=tx, tilt_y=ty)
+            if det.corner_count >= 6:
+                diverse.add(diverse.contribution(det, estimate_pose(det, CAMERA)))
+    for k in range(40):
+        det = detection_at((640 + 10 * np.sin(k), 360 + 8 * np.cos(k)), 0.9, tilt_x=3 * np.sin(k))
+        frontal.add(frontal.contribution(det, estimate_pose(det, CAMERA)))
+    assert diverse.is_complete(), diverse.summary()["missing"]
+    assert not frontal.is_complete()
+    assert frontal.completeness() < 0.6
+    assert frontal.missing_tilts() == ["top_away", "bottom_away", "left_away", "right_away", "steep_x", "steep_y"]
+    assert (0, 0) in [(r, c) for r, c, _ in frontal.missing_regions()]
+
+
+def test_guidance_names_the_corner_first_and_says_done_when_complete() -> None:
+    cmap = CoverageMap((W, H))
+    g = next_guidance(cmap)
+    assert g.sentence.startswith("Move the board to the top-left corner of the image")
+    assert "tilt" in g.sentence or "facing the camera" in g.sentence
+    assert g.target_centre_px == pytest.approx((W / 12, H / 8))
+    assert region_words(0, 2, 4, 6) == "the top edge of the image (left half)"
+    assert region_words(2, 0, 4, 6) == "the left edge of the image"
+    assert region_words(3, 5, 4, 6) == "the bottom-right corner of the image"
+    assert region_words(1, 2, 4, 6) == "the centre of the image"
+
+
+def test_selector_gates_each_reason() -> None:
+    sel = FrameSelector((W, H), squares_x=SPEC.squares_x)
+    full = detection_at((640, 360), 0.9)
+    few = Detection(full.corners_px[:5], full.ids[:5], full.object_points_m[:5], full.marker_ids)
+    row = full.ids < 7  # one board row: collinear
+    line = Detection(full.corners_px[row], full.ids[row], full.object_points_m[row], full.marker_ids)
+    # five corners down one column and one beside it: a pose OpenCV's solver cannot pin down
+    column = np.isin(full.ids, [6, 13, 20, 27, 34, 33])
+    l_shape = Detection(full.corners_px[column], full.ids[column], full.object_points_m[column], full.marker_ids)
+    assert sel.gate(Detection.empty()).reason == "no board"
+    assert sel.gate(few).reason == "too few corners"
+    assert corner_spread(line) < 0.01
+    assert sel.gate(line).reason == "collinear"
+    assert sel.gate(l_shape).reason == "collinear"
+    assert sel.gate(full) is None
+    pose = estimate_pose(full, CAMERA)
+    moving, _ = sel.decide(0, full, pose, motion_px_s=80.0, blur_px=1.0)
+    assert moving.reason == "moving" and moving.quality == pytest.approx((25.0 / 80.0) ** 2)
+    assert sel.decide(0, full, pose, motion_px_s=5.0, blur_px=1.0)[0].accepted
+    blurred, _ = sel.decide(0, full, pose, motion_px_s=None, blur_px=3.5)
+    assert blurred.reason == "blurred" and blurred.quality == 0.0
+
+
+def test_selector_accepts_new_coverage_and_rejects_look_alikes() -> None:
+    sel = FrameSelector((W, H), squares_x=SPEC.squares_x)
+    first = detection_at((640, 360), 0.9)
+    d1, c1 = sel.decide(0, first, estimate_pose(first, CAMERA), motion_px_s=None, blur_px=1.0)
+    assert d1.accepted and c1 is not None
+    sel.commit(0, first, estimate_pose(first, CAMERA), c1, blur_px=1.0)
+    twin = detection_at((646, 357), 0.91)
+    d2, _ = sel.decide(1, twin, estimate_pose(twin, CAMERA), motion_px_s=None, blur_px=1.0)
+    assert d2.reason == "duplicate" and "frame 0" in d2.detail
+    # the same twin is kept if it would shrink the uncertainty a lot
+    d3, _ = sel.decide(1, twin, estimate_pose(twin, CAMERA), motion_px_s=None, blur_px=1.0, uncertainty_gain=lambda: 0.9)
+    assert d3.accepted
+    corner = detection_at((200, 130), 1.2, tilt_y=40)
+    d4, _ = sel.decide(2, corner, estimate_pose(corner, CAMERA), motion_px_s=None, blur_px=1.0)
+    assert d4.accepted and d4.coverage_gain > 0.02
+
+
+def test_selector_blur_limit_follows_the_cameras_own_sharpness() -> None:
+    sel = FrameSelector((W, H), squares_x=SPEC.squares_x, settings=SelectorSettings(keep_all_usable=True))
+    for k in range(3):
+        det = detection_at((300 + 200 * k, 360), 0.9)
+        d, c = sel.decide(k, det, estimate_pose(det, CAMERA), motion_px_s=None, blur_px=0.8)
+        sel.commit(k, det, estimate_pose(det, CAMERA), c, blur_px=0.8)
+    det = detection_at((640, 200), 0.9)
+    d, _ = sel.decide(9, det, estimate_pose(det, CAMERA), motion_px_s=None, blur_px=1.8)
+    assert d.reason == "blurred" and "limit 1.6" in d.detail
+    assert d.quality == pytest.approx((1.6 / 1.8) ** 2)  # kept in reserve at a lower weight
+
+
+def test_frame_limit() -> None:
+    sel = FrameSelector((W, H), squares_x=SPEC.squares_x, settings=SelectorSettings(max_frames=1, keep_all_usable=True))
+    det = detection_at((640, 360), 0.9)
+    d, c = sel.decide(0, det, None, motion_px_s=None, blur_px=None)
+    sel.commit(0, det, None, c)
+    assert sel.decide(1, det, None, motion_px_s=None, blur_px=None)[0].reason == "frame limit"
+
+
+def test_board_motion_uses_shared_corners_only() -> None:
+    a = detection_at((640, 360), 0.9)
+    shifted = Detection(a.corners_px[5:] + [3.0, 4.0], a.ids[5:], a.object_points_m[5:], a.marker_ids)
+    assert board_motion_px(a, shifted) == pytest.approx(5.0)
+    assert board_motion_px(None, a) is None
