@@ -89,6 +89,14 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--crop", type=_crop, help="crop x,y,width,height applied BEFORE the resize")
     sc.add_argument("--out", type=Path, required=True, help="output folder")
 
+    fc = sub.add_parser("focus", help="lock, unlock or show a camera's focus (visca:PORT[@BAUD])")
+    fc.add_argument("target", help="visca:/dev/ttyUSB0[@9600] (V4L2 and DepthAI targets come with live capture)")
+    action = fc.add_mutually_exclusive_group(required=True)
+    action.add_argument("--lock", action="store_true", help="manual focus, kept where it is unless --position")
+    action.add_argument("--unlock", action="store_true", help="back to autofocus")
+    action.add_argument("--status", action="store_true", help="print focus mode and positions")
+    fc.add_argument("--position", type=lambda t: int(t, 0), help="focus position for --lock (decimal or 0x hex)")
+
     bd = sub.add_parser("board", help="write the board at true physical scale (PDF, SVG or PNG)")
     bd.add_argument("--out", type=Path, required=True, help="board.pdf, board.svg or board.png")
     bd.add_argument("--dpi", type=int, default=300, help="PNG resolution (default 300)")
@@ -108,6 +116,10 @@ def main(argv: list[str] | None = None) -> int:
             from calibcoach.app.commands import scale_command
 
             return scale_command(args)
+        if args.command == "focus":
+            from calibcoach.app.commands import focus_command
+
+            return focus_command(args)
         if args.command == "board":
             from calibcoach.app.outputs.board_print import write_board
 

@@ -136,3 +136,28 @@ def scale_command(args: argparse.Namespace) -> int:
     print(f"{camera.image_size[0]}x{camera.image_size[1]}: fx {K[0, 0]:.3f} fy {K[1, 1]:.3f} cx {K[0, 2]:.3f} cy {K[1, 2]:.3f}; "
           f"distortion unchanged; wrote camera_matrix.npy, dist_coeffs.npy, calibration.yaml, camera_info.yaml to {out}")
     return 0
+
+
+def focus_command(args: argparse.Namespace) -> int:
+    """`calibcoach focus visca:PORT --lock [--position N] | --unlock | --status`, read back every time."""
+    from calibcoach.drivers.visca import ViscaCamera, parse_target
+
+    if not args.target.startswith("visca:"):
+        raise CalibcoachError(
+            f"focus target {args.target!r} is not supported yet: pass visca:PORT[@BAUD] "
+            "(V4L2 and DepthAI focus control arrive with `calibcoach live`)"
+        )
+    if args.position is not None and not args.lock:
+        raise CalibcoachError("--position goes with --lock")
+    port, baud = parse_target(args.target)
+    with ViscaCamera(port, baud=baud) as camera:
+        if args.lock:
+            position = camera.lock_focus(args.position)
+            print(f"{args.target}: focus locked (manual) at {position} (0x{position:04X}), read back from the camera")
+        elif args.unlock:
+            camera.unlock_focus()
+            print(f"{args.target}: autofocus on, read back from the camera")
+        status = camera.status()
+    print(f"{args.target}: focus {status['focus_mode']}, focus position {status['focus_position']} "
+          f"(0x{status['focus_position']:04X}), zoom position {status['zoom_position']} (0x{status['zoom_position']:04X})")
+    return 0
