@@ -89,6 +89,28 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--crop", type=_crop, help="crop x,y,width,height applied BEFORE the resize")
     sc.add_argument("--out", type=Path, required=True, help="output folder")
 
+    lv = sub.add_parser("live", help="guide a live capture (camera, or a file paced like one) until calibrated")
+    lv.add_argument("--source", required=True, help="v4l2:/dev/videoN | v4l2:N | depthai[:ID] | a video, folder or recording")
+    lv.add_argument("--out", type=Path, required=True, help="output folder")
+    lv.add_argument("--record", type=Path, help="record the session here as it happens (crash-safe)")
+    lv.add_argument("--resume", type=Path, help="continue a recorded session (crashed, stopped or unplugged)")
+    lv.add_argument("--viewer", choices=("web", "native", "none"), default="web", help="progress viewer (default web)")
+    lv.add_argument("--no-viewer", dest="viewer", action="store_const", const="none", help="same as --viewer none")
+    lv.add_argument("--size", type=_size, help="capture resolution, e.g. 1920x1080")
+    lv.add_argument("--fps", type=float, help="capture frame rate")
+    lv.add_argument("--speed", type=float, default=1.0, help="replay sources: play this many times faster than recorded")
+    lv.add_argument("--focus-control", help="lock focus through a VISCA camera: visca:PORT[@BAUD]")
+    lv.add_argument("--lens-position", type=lambda t: int(t, 0), help="focus position to lock at (default: keep the current one)")
+    lv.add_argument("--allow-autofocus", action="store_true", help="run on a camera whose focus cannot be locked")
+    lv.add_argument("--model", choices=("auto", "pinhole", "rational", "fisheye"), default="auto")
+    lv.add_argument("--accept-partial", action="store_true", help="write the .npy files even when not trusted")
+    lv.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
+    lv.add_argument("--no-stop", action="store_true", help="keep capturing after the stop rule is met")
+    lv.add_argument("--quiet", action="store_true", help="no status line")
+    add_board_arguments(lv)
+
+    sub.add_parser("devices", help="list V4L2 and DepthAI cameras with their modes and focus/exposure controls")
+
     fc = sub.add_parser("focus", help="lock, unlock or show a camera's focus (visca:PORT[@BAUD])")
     fc.add_argument("target", help="visca:/dev/ttyUSB0[@9600] (V4L2 and DepthAI targets come with live capture)")
     action = fc.add_mutually_exclusive_group(required=True)
@@ -116,6 +138,14 @@ def main(argv: list[str] | None = None) -> int:
             from calibcoach.app.commands import scale_command
 
             return scale_command(args)
+        if args.command == "live":
+            from calibcoach.app.live_command import live_command
+
+            return live_command(args, board_from_args(args), argv=sys.argv if argv is None else ["calibcoach", *argv])
+        if args.command == "devices":
+            from calibcoach.app.live_command import devices_command
+
+            return devices_command(args)
         if args.command == "focus":
             from calibcoach.app.commands import focus_command
 

@@ -12,7 +12,7 @@ from calibcoach.app.replay import run_replay
 from calibcoach.app.session import FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.select import SelectorSettings
-from calibcoach.drivers.base import Frame
+from calibcoach.drivers.base import Frame, SourceInfo
 from calibcoach.drivers.errors import CalibcoachError
 from calibcoach.drivers.replay import open_source
 
@@ -54,19 +54,25 @@ class ProgressLine:
             print(file=sys.stderr)
 
 
-def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
-    source = open_source(args.source)
-    info = source.info
-    settings = SessionSettings(
+def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) -> SessionSettings:
+    """The session's settings from the command line; live and replay of its recording must agree."""
+    photos = not live and info.kind == "folder"  # a folder handed to `calibrate` is a set of photos
+    return SessionSettings(
         model=args.model,
         # A folder of photos that fits the frame budget was chosen by a person: keep every usable one.
         selector=SelectorSettings(
             max_frames=args.max_frames,
-            keep_all_usable=info.kind == "folder" and (info.frame_count or 0) <= args.max_frames,
+            keep_all_usable=photos and (info.frame_count or 0) <= args.max_frames,
         ),
         stop_when_done=not args.no_stop,
-        use_motion_gate=info.kind != "folder",
+        use_motion_gate=not photos,
     )
+
+
+def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
+    source = open_source(args.source)
+    info = source.info
+    settings = session_settings(args, info, live=False)
     if info.board and not (args.board or args.squares):
         board = BoardSpec.from_dict(dict(info.board))  # a recording knows its board
     print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)

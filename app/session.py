@@ -137,6 +137,7 @@ class CalibrationSession:
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
         self.budget_fill: tuple[int, int] = (0, 0)  # (frames added at the end, candidates they came from)
         self._done = False
+        self.accepting = True  # a live session turns this off when the focus drifts
 
     # --- per frame ------------------------------------------------------------------------------
     @property
@@ -163,6 +164,8 @@ class CalibrationSession:
         self._previous = (detection, frame.timestamp_ns)
         pose = estimate_pose(detection, self.camera) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
+        if gated is None and not self.accepting:
+            gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
         blur = None
         if gated is None:
             blur = edge_blur_px(frame.grey(), detection.corners_px)

@@ -22,7 +22,8 @@ from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import Contribution, CoverageMap
 from calibcoach.coverage.pose import BoardPose
 
-REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred", "duplicate", "adds nothing", "frame limit")
+REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred", "duplicate", "adds nothing", "frame limit",
+                  "focus drift")
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,6 +153,11 @@ class FrameSelector:
         if spread < s.min_spread or not spans_rows_and_columns(detection, self.squares_x):
             return Decision(False, "collinear", f"spread {spread:.2f}", quality=0.0)
         return None
+
+    @property
+    def accepted_blurs(self) -> list[float]:
+        """Edge blur (px) of every frame kept so far: this camera's own sharpness baseline."""
+        return list(self._blurs)
 
     def blur_limit_px(self) -> float:
         """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""

@@ -65,6 +65,7 @@ def write_session_outputs(
     replay_seconds: float,
     frames_read: int,
     stopped_early: bool,
+    lens_state: dict | None = None,
 ) -> list[Path]:
     """Write all outputs; returns the paths written."""
     out_dir = Path(out_dir)
@@ -89,7 +90,7 @@ def write_session_outputs(
         board=result.board,
         source=source_summary(source_info, frames_read=frames_read, replay_seconds=replay_seconds, stopped_early=stopped_early),
         command_line=command_line,
-        lens_state=dict(source_info.controls),
+        lens_state=dict(source_info.controls) if lens_state is None else lens_state,
     )
     payload["uncertainty"]["target_px"] = uncertainty_target_px(camera.image_size)
     written.append(write_calibration_json(out_dir / "calibration.json", payload))

@@ -1,0 +1,262 @@
+"""Live capture: a camera (or a file paced like one) in front of the very same session as replay.
+
+Capture never waits for detection or solving: a capture thread keeps only the newest frame
+(older ones are dropped and counted), and the loop processes whatever is newest when it is free.
+Each processed frame is recorded first (crash-safe), so `calibcoach calibrate RECORDING`
+replays exactly the frames the live session saw and reproduces its decisions and its result.
+Like replay, the loop looks one frame ahead (the two-sided stillness test), which costs one frame
+of latency and keeps live and replay identical.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
+from calibcoach.drivers.errors import CalibcoachError, SourceError
+from calibcoach.drivers.recording import RecordingWriter
+from calibcoach.drivers.replay import RecordingSource
+
+FOCUS_CONTROL_KEYS = ("focus_absolute", "lens_position", "focus_position")  # what a driver reports per frame
+
+
+class CameraLostError(CalibcoachError):
+    """The camera vanished mid-session; everything recorded so far is on disk and resumable."""
+
+    exit_code = 4
+
+
+class PacedSource(FrameSource):
+    """A file source delivered at its own frame rate, like a camera (`speed` > 1 plays faster)."""
+
+    def __init__(self, source: FrameSource, *, speed: float = 1.0) -> None:
+        super().__init__()
+        self.inner = source
+        self.speed = speed
+
+    @property
+    def info(self) -> SourceInfo:
+        return self.inner.info
+
+    def frames(self) -> Iterator[Frame]:
+        start = time.monotonic()
+        first_ns: int | None = None
+        for frame in self.inner.frames():
+            first_ns = frame.timestamp_ns if first_ns is None else first_ns
+            due = start + (frame.timestamp_ns - first_ns) / 1e9 / self.speed
+            delay = due - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            yield frame
+        self.skipped = self.inner.skipped
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class _NoFrames(FrameSource):
+    def __init__(self, info: SourceInfo) -> None:
+        super().__init__()
+        self._info = info
+
+    @property
+    def info(self) -> SourceInfo:
+        return self._info
+
+    def frames(self) -> Iterator[Frame]:
+        return iter(())
+
+
+class FrameGrabber:
+    """A capture thread that keeps only the newest frame; the consumer never makes it wait."""
+
+    def __init__(self, source: FrameSource) -> None:
+        self.source = source
+        self.dropped = 0  # frames overwritten before the consumer took them
+        self.captured = 0
+        self.error: BaseException | None = None
+        self._latest: Frame | None = None
+        self._ended = False
+        self._stop = threading.Event()
+        self._ready = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="capture", daemon=True)
+
+    def start(self) -> FrameGrabber:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        try:
+            for frame in self.source.frames():
+                with self._ready:
+                    if self._latest is not None:
+                        self.dropped += 1
+                    self._latest = frame
+                    self.captured += 1
+                    self._ready.notify()
+                if self._stop.is_set():
+                    break
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which reports it once
+            self.error = exc
+        finally:
+            with self._ready:
+                self._ended = True
+                self._ready.notify()
+
+    def next(self) -> Frame | None:
+        """The newest frame not yet taken; None once the source has ended (check `error`)."""
+        with self._ready:
+            while self._latest is None and not self._ended:
+                self._ready.wait(0.5)
+            frame, self._latest = self._latest, None
+            return frame
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+
+@dataclass(frozen=True, slots=True)
+class LiveStats:
+    frames_processed: int
+    frames_dropped: int
+    seconds: float
+    stopped_early: bool  # the stop rule was met
+    interrupted: bool  # Ctrl-C
+    resumed_frames: int  # frames replayed from the recording that was resumed
+    focus_drift: str | None  # why acceptance stopped, if the focus moved
+    board: BoardSpec
+
+    @property
+    def processed_fps(self) -> float:
+        return self.frames_processed / self.seconds if self.seconds > 0 else 0.0
+
+
+class FocusWatch:
+    """Stops acceptance when the lens moves: a focus control reads back different, or frames go soft.
+
+    `locked` holds the control values read back after locking; every frame's own control report is
+    compared with it. The sharpness check compares the edge blur of frames with a board against the
+    median of the frames accepted so far: a run of frames 1.8x blurrier means focus drifted (or the
+    lens breathes) even on cameras that report nothing.
+    """
+
+    def __init__(self, locked: dict[str, float]) -> None:
+        self.locked = {k: float(v) for k, v in locked.items() if k in FOCUS_CONTROL_KEYS}
+        self.problem: str | None = None
+        self._soft_run = 0
+
+    def check(self, frame: Frame, outcome: FrameOutcome, accepted_blurs: list[float]) -> str | None:
+        for key, value in self.locked.items():
+            now = frame.controls.get(key)
+            if now is not None and abs(float(now) - value) > 0.5:
+                self.problem = f"{key} moved from {value:g} to {float(now):g} at frame {frame.index}"
+                return self.problem
+        if outcome.blur_px is not None and np.isfinite(outcome.blur_px) and len(accepted_blurs) >= 5:
+            soft = outcome.blur_px > 1.8 * float(np.median(accepted_blurs))
+            self._soft_run = self._soft_run + 1 if soft else 0
+            if self._soft_run >= 15:
+                self.problem = (f"the last 15 frames with a board are {outcome.blur_px / np.median(accepted_blurs):.1f}x "
+                                f"blurrier than the accepted ones (frame {frame.index}): focus drifted")
+                return self.problem
+        return None
+
+
+def run_live(
+    source: FrameSource,
+    board: BoardSpec,
+    settings: SessionSettings,
+    *,
+    record: Path | None = None,
+    resume: Path | None = None,
+    locked_controls: dict[str, float] | None = None,
+    on_outcome: Callable[[FrameOutcome, Frame, LiveStats], None] | None = None,
+) -> tuple[CalibrationSession | None, LiveStats]:
+    """Guide a live capture until the stop rule, the end of the source, Ctrl-C or a lost camera.
+
+    Raises:
+        CameraLostError: the source failed mid-stream; the recording holds every processed frame.
+    """
+    info = source.info
+    detector = CharucoBoardDetector(board)
+    session: CalibrationSession | None = None
+    writer: RecordingWriter | None = None
+    watch = FocusWatch(locked_controls or {})
+    start = time.perf_counter()
+    processed = resumed = 0
+    held: tuple[Frame, Detection] | None = None
+    stopped = interrupted = False
+    grabber: FrameGrabber | None = None
+
+    def stats() -> LiveStats:
+        dropped = 0 if grabber is None else grabber.dropped
+        return LiveStats(processed, dropped, time.perf_counter() - start, stopped, interrupted, resumed,
+                         watch.problem, detector.spec)
+
+    def feed(frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> bool:
+        nonlocal session, processed
+        if session is None:
+            session = CalibrationSession(detector.spec, frame.image_size, settings)
+        if watch.problem is not None:
+            session.accepting = False
+        outcome = session.process(frame, detection, following=following)
+        processed += 1
+        if watch.problem is None and watch.check(frame, outcome, session.selector.accepted_blurs):
+            session.accepting = False
+        if on_outcome is not None:
+            on_outcome(outcome, frame, stats())
+        return session.done
+
+    if resume is not None:  # replay what was recorded, exactly as `calibrate` would, then go on live
+        for frame in RecordingSource(resume).frames():
+            detection = detector.detect(frame.grey())
+            resumed += 1
+            if held is not None and feed(*held, (detection, frame.timestamp_ns)):
+                stopped, held = True, None
+                break
+            held = (frame, detection)
+    if stopped:  # the resumed recording already met the stop rule: nothing left to capture
+        source = _NoFrames(info)
+    grabber = FrameGrabber(source).start()
+    target = resume if resume is not None else record
+    try:
+        while True:
+            frame = grabber.next()
+            if frame is None:
+                break
+            if target is not None:
+                if writer is None:
+                    writer = RecordingWriter(
+                        target, camera_id=info.camera_id or info.description, kind=info.kind, image_size=frame.image_size,
+                        fps=info.fps, controls=dict(info.controls), board=detector.spec.to_dict(), append=resume is not None,
+                    )
+                frame = replace(frame, index=writer.write(frame))  # recorded before processed: crash-safe
+            detection = detector.detect(frame.grey())
+            if held is not None and feed(*held, (detection, frame.timestamp_ns)):
+                stopped = True
+                held = None
+                break
+            held = (frame, detection)
+        if held is not None and not stopped:
+            stopped = feed(*held, None)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        grabber.stop()
+        if writer is not None:
+            writer.close()
+    if grabber.error is not None and not isinstance(grabber.error, KeyboardInterrupt):
+        where = f"; every processed frame is in {target}: continue with --resume {target}" if target else \
+            " (nothing was recorded: pass --record DIR to keep a session across such losses)"
+        reason = str(grabber.error) if isinstance(grabber.error, SourceError) else repr(grabber.error)
+        raise CameraLostError(f"the camera stopped delivering frames after {processed} processed frames ({reason}){where}")
+    return session, stats()

@@ -1,0 +1,161 @@
+"""`calibcoach live` and `calibcoach devices`: cameras in front of the session (see live.py)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from calibcoach.app.commands import session_settings
+from calibcoach.app.live import FrameGrabber, LiveStats, PacedSource, run_live
+from calibcoach.app.outputs.report import write_session_outputs
+from calibcoach.app.session import FrameOutcome
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.base import Frame, FrameSource
+from calibcoach.drivers.errors import CalibcoachError
+from calibcoach.drivers.replay import open_source
+
+__all__ = ["FrameGrabber", "devices_command", "live_command"]
+
+
+def open_live_source(args: argparse.Namespace) -> tuple[FrameSource, Any | None]:
+    """(source, focus controller or None) for v4l2:..., depthai[:ID] or any replay source (paced)."""
+    spec = str(args.source)
+    if spec.startswith("v4l2:") or spec.startswith("/dev/video"):
+        from calibcoach.drivers.v4l2 import V4L2Camera, parse_v4l2_target
+
+        camera = V4L2Camera(parse_v4l2_target(spec), size=args.size, fps=args.fps)
+        return camera, camera.focus
+    if spec == "depthai" or spec.startswith("depthai:"):
+        from calibcoach.drivers.oak import DepthAICamera, parse_depthai_target
+
+        camera = DepthAICamera(parse_depthai_target(spec), size=args.size or (1920, 1080), fps=args.fps or 30.0,
+                               lens_position=args.lens_position)
+        return camera, camera.focus
+    return PacedSource(open_source(spec), speed=args.speed), None
+
+
+def lock_focus(args: argparse.Namespace, source: FrameSource, focus: Any | None) -> dict[str, float]:
+    """Lock focus before the first frame counts; returns the controls read back (for drift checks)."""
+    if args.focus_control:
+        from calibcoach.drivers.visca import ViscaCamera, parse_target
+
+        port, baud = parse_target(args.focus_control)
+        with ViscaCamera(port, baud=baud) as camera:
+            position = camera.lock_focus(args.lens_position)
+        print(f"calibcoach: focus locked through {args.focus_control} at {position} (0x{position:04X}), read back",
+              file=sys.stderr)
+        return {"visca_focus_position": float(position)}
+    if focus is not None:
+        locked = focus.lock(args.lens_position)
+        # V4L2 reads back several controls (a dict); DepthAI reports one lens position per frame
+        values = dict(locked) if isinstance(locked, dict) else {"lens_position": locked}
+        print(f"calibcoach: focus locked, read back: {values}", file=sys.stderr)
+        return {k: float(v) for k, v in values.items()}
+    if source.info.kind in ("v4l2", "depthai") and not args.allow_autofocus:
+        raise CalibcoachError(
+            "this camera offers no focus control, so focus cannot be locked; pass --focus-control visca:PORT, "
+            "or --allow-autofocus if the lens is fixed-focus (an autofocus change invalidates the calibration)"
+        )
+    print(f"calibcoach: {source.info.kind} source: focus is whatever was captured; nothing to lock", file=sys.stderr)
+    return {}
+
+
+class LiveStatus:
+    """One status line for the person at the camera: progress, rate, and what to do next."""
+
+    def __init__(self, *, enabled: bool) -> None:
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self._last = 0.0
+        self._said = ""
+
+    def __call__(self, outcome: FrameOutcome, frame: Frame, stats: LiveStats) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        guidance = outcome.guidance.sentence
+        if now - self._last < (0.2 if self.tty else 3.0) and guidance == self._said:
+            return
+        self._last = now
+        p = outcome.progress
+        unc = "--" if p.uncertainty_p95_px is None else f"{p.uncertainty_p95_px:.3f}"
+        line = (f"kept {p.frames_accepted}  coverage {p.coverage * 100:3.0f}%  uncertainty {unc}/{p.uncertainty_target_px:.3f} px"
+                f"  {stats.processed_fps:4.1f} fps  dropped {stats.frames_dropped}  last: {outcome.decision.reason}")
+        if self.tty:
+            print("\r" + f"{line} | {guidance}"[:200].ljust(200), end="", file=sys.stderr, flush=True)
+        else:
+            print(line if guidance == self._said else f"{line}\n  next: {guidance}", file=sys.stderr, flush=True)
+        self._said = guidance
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            print(file=sys.stderr)
+
+
+def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
+    if args.viewer != "none":
+        print("calibcoach: the Rerun viewer is not wired in yet; guidance goes to this terminal", file=sys.stderr)
+    if args.record and args.resume:
+        raise CalibcoachError("pass either --record DIR (a new recording) or --resume DIR (continue one), not both")
+    source, focus = open_live_source(args)
+    info = source.info
+    if info.board and not (args.board or args.squares):
+        board = BoardSpec.from_dict(dict(info.board))
+    print(f"calibcoach: live on {info.description}; board {board.describe()}", file=sys.stderr)
+    with source:
+        locked = lock_focus(args, source, focus)
+        status = LiveStatus(enabled=not args.quiet)
+        try:
+            session, stats = run_live(source, board, session_settings(args, info, live=True),
+                                      record=args.record, resume=args.resume, locked_controls=locked, on_outcome=status)
+        finally:
+            status.close()
+    why = ("Ctrl-C" if stats.interrupted else "stop rule met (coverage complete, uncertainty on target)"
+           if stats.stopped_early else "end of source")
+    print(f"calibcoach: processed {stats.frames_processed} frames ({stats.processed_fps:.1f} fps, {stats.frames_dropped} "
+          f"dropped by the capture thread) in {stats.seconds:.1f} s: {why}", file=sys.stderr)
+    if stats.resumed_frames:
+        print(f"calibcoach: {stats.resumed_frames} frames came from the resumed recording", file=sys.stderr)
+    if stats.focus_drift:
+        print(f"calibcoach: acceptance stopped: {stats.focus_drift}; lock focus again and continue with --resume",
+              file=sys.stderr)
+    if session is None:
+        raise CalibcoachError(f"{info.description} delivered no frames; check the camera and the --source")
+    result = session.finish()
+    lens_state = {**dict(info.controls), **locked}
+    written = write_session_outputs(
+        args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
+        replay_seconds=stats.seconds, frames_read=stats.frames_processed, stopped_early=stats.stopped_early,
+        lens_state=lens_state,
+    )
+    if info.kind == "depthai" and (result.verdict.trusted or args.accept_partial):
+        from calibcoach.drivers.oak import write_depthai_calibration
+
+        written.append(write_depthai_calibration(Path(args.out) / "depthai_calibration.json", result.calibration.camera))
+    cal = result.calibration
+    print(f"{result.verdict.grade.upper()}: {cal.camera.model} model, RMS {cal.rms_px:.3f} px on {len(cal.views)} frames; "
+          f"wrote {', '.join(p.name for p in written)} to {args.out}")
+    for reason in result.verdict.reasons:
+        print(f"  - {reason}")
+    return 0 if result.verdict.trusted else 3
+
+
+def devices_command(args: argparse.Namespace) -> int:
+    """Every V4L2 and DepthAI camera with its modes and focus/exposure/white-balance controls."""
+    from calibcoach.drivers.oak import list_depthai_devices
+    from calibcoach.drivers.v4l2 import list_v4l2_devices
+
+    cameras = [("v4l2", d) for d in list_v4l2_devices()] + [("depthai", d) for d in list_depthai_devices(timeout_s=2.0)]
+    if not cameras:
+        print("no cameras found (no V4L2 /dev/video* capture device, no DepthAI device)")
+        return 0
+    for kind, device in cameras:
+        name = device.get("path") or device.get("device_id") or device.get("id")
+        print(f"{kind}: {name}  {device.get('name') or device.get('card') or ''}")
+        for key, value in device.items():
+            if key not in ("path", "device_id", "id", "name", "card"):
+                print(f"    {key}: {value}")
+    return 0
