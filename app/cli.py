@@ -106,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--accept-partial", action="store_true", help="write the .npy files even when not trusted")
     lv.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
     lv.add_argument("--no-stop", action="store_true", help="keep capturing after the stop rule is met")
+    lv.add_argument("--write-to-device", action="store_true",
+                    help="DepthAI: also flash the result into the camera's EEPROM (the old calibration is backed up)")
     lv.add_argument("--quiet", action="store_true", help="no status line")
     add_board_arguments(lv)
 

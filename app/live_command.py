@@ -49,7 +49,14 @@ def lock_focus(args: argparse.Namespace, source: FrameSource, focus: Any | None)
               file=sys.stderr)
         return {"visca_focus_position": float(position)}
     if focus is not None:
-        locked = focus.lock(args.lens_position)
+        try:
+            locked = focus.lock(args.lens_position)
+        except CalibcoachError as exc:
+            if not args.allow_autofocus:
+                raise
+            print(f"calibcoach: warning: focus not locked ({exc}); continuing because of --allow-autofocus",
+                  file=sys.stderr)
+            return {}
         # V4L2 reads back several controls (a dict); DepthAI reports one lens position per frame
         values = dict(locked) if isinstance(locked, dict) else {"lens_position": locked}
         print(f"calibcoach: focus locked, read back: {values}", file=sys.stderr)
@@ -134,7 +141,18 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
     if info.kind == "depthai" and (result.verdict.trusted or args.accept_partial):
         from calibcoach.drivers.oak import write_depthai_calibration
 
-        written.append(write_depthai_calibration(Path(args.out) / "depthai_calibration.json", result.calibration.camera))
+        lens = int(locked["lens_position"]) if "lens_position" in locked else None
+        written.append(write_depthai_calibration(Path(args.out) / "depthai_calibration.json", result.calibration.camera,
+                                                 lens_position=lens))
+        if args.write_to_device:
+            from calibcoach.drivers.oak_device import flash_intrinsics
+
+            backup = flash_intrinsics(info.camera_id or None, result.calibration.camera, lens_position=lens,
+                                      backup_path=Path(args.out) / "depthai_calibration_before.json")
+            print(f"calibcoach: flashed CAM_A intrinsics to the device; its previous calibration is in {backup}")
+    elif args.write_to_device:
+        print("calibcoach: --write-to-device applies to trusted DepthAI calibrations only; nothing was flashed",
+              file=sys.stderr)
     cal = result.calibration
     print(f"{result.verdict.grade.upper()}: {cal.camera.model} model, RMS {cal.rms_px:.3f} px on {len(cal.views)} frames; "
           f"wrote {', '.join(p.name for p in written)} to {args.out}")

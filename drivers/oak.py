@@ -219,13 +219,27 @@ def write_depthai_calibration(path: str | Path, camera: CameraModel, *, socket: 
     is stored when known because the intrinsics are only valid at that focus. The file is only
     written here; flashing it to a device's EEPROM is a separate, explicitly requested step.
     """
+    handler = apply_intrinsics(dai.CalibrationHandler(), camera, socket=socket, lens_position=lens_position)
+    out = Path(path)
+    if not handler.eepromToJsonFile(out):
+        raise CalibcoachError(f"DepthAI could not write the calibration file {out}; check that the folder "
+                              f"exists and is writable")
+    return out
+
+
+def apply_intrinsics(handler: dai.CalibrationHandler, camera: CameraModel, *, socket: str = "CAM_A",
+                     lens_position: int | None = None) -> dai.CalibrationHandler:
+    """Set one socket's intrinsics, distortion, camera type (and lens position) on `handler`.
+
+    Used on a fresh handler for the JSON file, and on the device's own calibration before flashing,
+    so that the other sockets' intrinsics and the stereo extrinsics stay as the factory left them.
+    """
     board_socket = getattr(dai.CameraBoardSocket, socket, None)
     if not isinstance(board_socket, dai.CameraBoardSocket):
         names = ", ".join(sorted(n for n in dai.CameraBoardSocket.__members__ if n.startswith("CAM_")))
         raise CalibcoachError(f"camera socket {socket!r} is not a DepthAI board socket; use one of {names}")
     coeffs = [float(c) for c in camera.dist_coeffs]
     coeffs += [0.0] * (DEPTHAI_COEFF_COUNT - len(coeffs))
-    handler = dai.CalibrationHandler()
     width, height = camera.image_size
     handler.setCameraIntrinsics(board_socket, camera.camera_matrix.tolist(), width, height)
     handler.setDistortionCoefficients(board_socket, coeffs)
@@ -233,11 +247,7 @@ def write_depthai_calibration(path: str | Path, camera: CameraModel, *, socket: 
                           else dai.CameraModel.Perspective)
     if lens_position is not None:
         handler.setLensPosition(board_socket, check_lens_position(lens_position))
-    out = Path(path)
-    if not handler.eepromToJsonFile(out):
-        raise CalibcoachError(f"DepthAI could not write the calibration file {out}; check that the folder "
-                              f"exists and is writable")
-    return out
+    return handler
 
 
 def check_lens_position(position: object) -> int:

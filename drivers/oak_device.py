@@ -11,17 +11,20 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from datetime import timedelta
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import depthai as dai
 
 from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
-from calibcoach.drivers.errors import SourceError
+from calibcoach.drivers.errors import CalibcoachError, SourceError
+from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.oak import (
     FOCUS_SETTLE_S,
     QUEUE_SIZE,
     FocusControlError,
+    apply_intrinsics,
     check_lens_position,
     frames_from_queue,
     list_depthai_devices,
@@ -192,3 +195,26 @@ class DepthAICamera(FrameSource):
                     stop()
                 except RuntimeError:
                     pass  # already gone with the device; nothing left to release
+
+
+def flash_intrinsics(device_id: str | None, camera: CameraModel, *, backup_path: Path, socket: str = "CAM_A",
+                     lens_position: int | None = None) -> Path:
+    """Write `camera` into the device's EEPROM calibration (only on the user's explicit request).
+
+    The device's current calibration is saved to `backup_path` first, then only `socket`'s
+    intrinsics are replaced on it, so stereo extrinsics and the other cameras stay untouched.
+    Returns the backup path.
+    """
+    try:
+        device = dai.Device(device_id) if device_id else dai.Device()
+    except RuntimeError as exc:
+        raise SourceError(f"cannot open the OAK camera to flash its calibration ({exc}); is it plugged in?") from None
+    with device:
+        current = device.readCalibration()
+        if not current.eepromToJsonFile(Path(backup_path)):
+            raise CalibcoachError(f"could not back up the device calibration to {backup_path}; nothing was flashed")
+        try:
+            device.flashCalibration(apply_intrinsics(current, camera, socket=socket, lens_position=lens_position))
+        except RuntimeError as exc:
+            raise CalibcoachError(f"flashing the calibration failed ({exc}); the previous one is saved in {backup_path}") from None
+    return Path(backup_path)

@@ -118,3 +118,16 @@ def test_live_refuses_record_and_resume_together(recordings_dir: Path, tmp_path:
     code = main(["live", "--source", str(recordings_dir / DEMO), "--out", str(tmp_path / "o"), "--record", str(tmp_path / "a"),
                  "--resume", str(tmp_path / "b"), "--no-viewer"])
     assert code == 2 and "not both" in capsys.readouterr().err
+
+
+def test_devices_without_cameras_says_so_quickly(capsys: pytest.CaptureFixture[str]) -> None:
+    start = time.monotonic()
+    assert main(["devices"]) == 0
+    assert "no cameras found" in capsys.readouterr().out
+    assert time.monotonic() - start < 8.0  # DepthAI's own search would take ~11 s
+
+
+def test_live_on_a_depthai_camera_that_is_not_there_says_so(tmp_path: Path, capsys) -> None:
+    code = main(["live", "--source", "depthai:0000000000", "--out", str(tmp_path / "o"), "--no-viewer"])
+    assert code == 2
+    assert "not found" in capsys.readouterr().err

@@ -254,3 +254,18 @@ def test_calibration_rejects_an_unknown_socket(tmp_path):
     camera = CameraModel.from_fov((640, 480), 70.0)
     with pytest.raises(CalibcoachError, match="'CAM_Z' is not a DepthAI board socket; use one of CAM_A"):
         write_depthai_calibration(tmp_path / "c.json", camera, socket="CAM_Z")
+
+
+def test_flashing_replaces_only_the_calibrated_socket() -> None:
+    # before flashing, the device's own calibration gets CAM_A's new intrinsics and nothing else
+    from calibcoach.drivers.oak import apply_intrinsics
+
+    device_calibration = dai.CalibrationHandler()
+    other = [[800.0, 0.0, 640.0], [0.0, 800.0, 400.0], [0.0, 0.0, 1.0]]
+    device_calibration.setCameraIntrinsics(dai.CameraBoardSocket.CAM_B, other, 1280, 800)
+    camera = CameraModel("pinhole", [[1500.0, 0, 960.0], [0, 1500.0, 540.0], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1920, 1080))
+    updated = apply_intrinsics(device_calibration, camera, lens_position=120)
+    a = np.array(updated.getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, 1920, 1080))
+    b = np.array(updated.getCameraIntrinsics(dai.CameraBoardSocket.CAM_B, 1280, 800))
+    np.testing.assert_allclose(a, camera.camera_matrix, rtol=1e-6)
+    np.testing.assert_allclose(b, other, rtol=1e-6)
