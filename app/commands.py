@@ -145,16 +145,22 @@ def scale_command(args: argparse.Namespace) -> int:
 
 
 def focus_command(args: argparse.Namespace) -> int:
-    """`calibcoach focus visca:PORT --lock [--position N] | --unlock | --status`, read back every time."""
-    from calibcoach.drivers.visca import ViscaCamera, parse_target
-
-    if not args.target.startswith("visca:"):
-        raise CalibcoachError(
-            f"focus target {args.target!r} is not supported yet: pass visca:PORT[@BAUD] "
-            "(V4L2 and DepthAI focus control arrive with `calibcoach live`)"
-        )
+    """`calibcoach focus TARGET --lock [--position N] | --unlock | --status`, read back every time."""
     if args.position is not None and not args.lock:
         raise CalibcoachError("--position goes with --lock")
+    target = args.target
+    if target.startswith("visca:"):
+        return _focus_visca(args)
+    if target.startswith("v4l2:") or target.startswith("/dev/video"):
+        return _focus_v4l2(args)
+    if target == "depthai" or target.startswith("depthai:"):
+        return _focus_depthai(args)
+    raise CalibcoachError(f"unknown focus target {target!r}; pass v4l2:/dev/videoN, v4l2:N, depthai[:ID] or visca:PORT[@BAUD]")
+
+
+def _focus_visca(args: argparse.Namespace) -> int:
+    from calibcoach.drivers.visca import ViscaCamera, parse_target
+
     port, baud = parse_target(args.target)
     with ViscaCamera(port, baud=baud) as camera:
         if args.lock:
@@ -166,4 +172,35 @@ def focus_command(args: argparse.Namespace) -> int:
         status = camera.status()
     print(f"{args.target}: focus {status['focus_mode']}, focus position {status['focus_position']} "
           f"(0x{status['focus_position']:04X}), zoom position {status['zoom_position']} (0x{status['zoom_position']:04X})")
+    return 0
+
+
+def _focus_v4l2(args: argparse.Namespace) -> int:
+    # UVC cameras keep their controls until unplugged, so a lock set here holds for later captures
+    from calibcoach.drivers.v4l2 import V4L2FocusControl, open_v4l2_device, parse_v4l2_target
+
+    device = open_v4l2_device(parse_v4l2_target(args.target))
+    try:
+        control = V4L2FocusControl(device)
+        if args.lock:
+            print(f"{args.target}: focus locked, read back: {control.lock(args.position)}")
+        elif args.unlock:
+            print(f"{args.target}: autofocus restored, read back: {control.unlock()}")
+        print(f"{args.target}: {control.status()}")
+    finally:
+        device.close()
+    return 0
+
+
+def _focus_depthai(args: argparse.Namespace) -> int:
+    if args.lock or args.unlock:
+        raise CalibcoachError(
+            "an OAK camera applies focus controls only while a pipeline runs, so a lock cannot outlive this command; "
+            "lock it for the capture with `calibcoach live --source depthai --lens-position N` "
+            "(`calibcoach focus depthai --status` reads the current lens position)"
+        )
+    from calibcoach.drivers.oak import DepthAICamera, parse_depthai_target
+
+    with DepthAICamera(parse_depthai_target(args.target)) as camera:
+        print(f"{args.target}: {camera.focus.status()}")
     return 0

@@ -133,6 +133,20 @@ def list_v4l2_devices(dev_dir: str | Path = "/dev") -> list[dict[str, Any]]:
     return found
 
 
+def open_v4l2_device(path: str):
+    """An opened linuxpy Device (controls only, no streaming), or a SourceError saying what to check."""
+    lvd = _import_linuxpy()
+    device = lvd.Device(path)
+    try:
+        device.open()
+    except OSError as exc:
+        raise SourceError(
+            f"cannot open camera {path}: {exc.strerror or exc}; check that it exists "
+            f"(ls /dev/video*), that your user is in group video, and that no other program "
+            f"uses it (fuser {path})") from exc
+    return device
+
+
 class V4L2Camera(FrameSource):
     """A live V4L2 camera as a frame source; frames are BGR (or grey for GREY cameras).
 
@@ -145,14 +159,7 @@ class V4L2Camera(FrameSource):
         super().__init__()
         self.path = parse_v4l2_target(device)
         lvd = self._lvd = _import_linuxpy()
-        self._device = lvd.Device(self.path)
-        try:
-            self._device.open()
-        except OSError as exc:
-            raise SourceError(
-                f"cannot open camera {self.path}: {exc.strerror or exc}; check that it exists "
-                f"(ls /dev/video*), that your user is in group video, and that no other program "
-                f"uses it (fuser {self.path})") from exc
+        self._device = open_v4l2_device(self.path)
         try:
             self._configure(size, fps, pixel_format)
         except (OSError, lvd.V4L2Error) as exc:
