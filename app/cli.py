@@ -43,6 +43,16 @@ def add_board_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--inverted", action="store_true", default=None, help="white-on-black print (default: detected)")
 
 
+def add_viewer_arguments(parser: argparse.ArgumentParser, *, default: str) -> None:
+    g = parser.add_argument_group("viewer (the session is always saved as session.rrd in --out)")
+    g.add_argument("--viewer", choices=("web", "native", "none"), default=default,
+                   help=f"web: serve Rerun's web viewer and print its URL; native: the desktop viewer (default {default})")
+    g.add_argument("--no-viewer", dest="viewer", action="store_const", const="none", help="same as --viewer none")
+    g.add_argument("--bind", default="127.0.0.1", help="address the web viewer listens on (default 127.0.0.1)")
+    g.add_argument("--web-port", type=int, default=9090, help="web viewer port (default 9090)")
+    g.add_argument("--grpc-port", type=int, default=9876, help="Rerun data port (default 9876)")
+
+
 def board_from_args(args: argparse.Namespace) -> BoardSpec:
     base = BoardSpec.from_toml(args.board) if args.board else BoardSpec()
     values = base.to_dict()
@@ -81,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
     cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
     cal.add_argument("--quiet", action="store_true", help="no progress line")
+    add_viewer_arguments(cal, default="none")
     add_board_arguments(cal)
 
     sc = sub.add_parser("scale", help="adapt a calibration to a resized and/or cropped image")
@@ -94,8 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--out", type=Path, required=True, help="output folder")
     lv.add_argument("--record", type=Path, help="record the session here as it happens (crash-safe)")
     lv.add_argument("--resume", type=Path, help="continue a recorded session (crashed, stopped or unplugged)")
-    lv.add_argument("--viewer", choices=("web", "native", "none"), default="web", help="progress viewer (default web)")
-    lv.add_argument("--no-viewer", dest="viewer", action="store_const", const="none", help="same as --viewer none")
+    add_viewer_arguments(lv, default="web")
     lv.add_argument("--size", type=_size, help="capture resolution, e.g. 1920x1080")
     lv.add_argument("--fps", type=float, help="capture frame rate")
     lv.add_argument("--speed", type=float, default=1.0, help="replay sources: play this many times faster than recorded")

@@ -76,12 +76,45 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
     if info.board and not (args.board or args.squares):
         board = BoardSpec.from_dict(dict(info.board))  # a recording knows its board
     print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)
-    progress = ProgressLine(info.frame_count, enabled=not args.quiet)
-    with source:
+    with open_viewer(args) as viewer:
+        progress = ProgressLine(info.frame_count, enabled=not args.quiet)
+
+        def on_outcome(outcome: FrameOutcome, frame: Frame) -> None:
+            progress(outcome, frame)
+            viewer.log_frame(outcome, frame)
+
+        with source:
+            try:
+                session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=on_outcome)
+            finally:
+                progress.close()
+        return _finish_replay(args, argv, source, info, session, stats, viewer)
+
+
+def open_viewer(args: argparse.Namespace):
+    """The Rerun sink for this run (always saving session.rrd); prints where to look."""
+    from calibcoach.app.viewer import Viewer
+
+    viewer = Viewer.open(args.viewer, out_dir=Path(args.out), bind=args.bind, web_port=args.web_port, grpc_port=args.grpc_port)
+    if viewer.url:
+        print(f"calibcoach: viewer at {viewer.url}", file=sys.stderr)
+    if viewer.notice:
+        print(f"calibcoach: {viewer.notice}", file=sys.stderr)
+    return viewer
+
+
+def keep_serving(viewer) -> None:
+    """After a replay, leave the web viewer up for the person who asked for it, until Ctrl-C."""
+    if viewer.url and sys.stdin.isatty():
+        print(f"calibcoach: the viewer stays at {viewer.url}; press Ctrl-C to quit", file=sys.stderr)
         try:
-            session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=progress)
-        finally:
-            progress.close()
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+
+
+def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
     if stats.variant_found and stats.variant_found != "standard pattern":
         print(f"calibcoach: detected {stats.variant_found}", file=sys.stderr)
     for skipped in source.skipped[:10]:
@@ -103,6 +136,8 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
         args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
         replay_seconds=stats.seconds, frames_read=stats.frames_read, stopped_early=stats.stopped_early,
     )
+    viewer.log_result(result, Path(args.out))
+    written.append(Path(args.out) / "session.rrd")
     cal, verdict = result.calibration, result.verdict
     K = cal.camera.camera_matrix
     print(
@@ -113,6 +148,7 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
     for reason in verdict.reasons:
         print(f"  - {reason}")
     print(f"wrote {', '.join(p.name for p in written)} to {args.out}")
+    keep_serving(viewer)
     if not verdict.trusted:
         if not args.accept_partial:
             print("camera_matrix.npy/dist_coeffs.npy were NOT written (pass --accept-partial to write them anyway)")

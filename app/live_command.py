@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from calibcoach.app.commands import session_settings
+from calibcoach.app.commands import keep_serving, open_viewer, session_settings
 from calibcoach.app.live import FrameGrabber, LiveStats, PacedSource, run_live
 from calibcoach.app.outputs.report import write_session_outputs
 from calibcoach.app.session import FrameOutcome
@@ -103,8 +103,6 @@ class LiveStatus:
 
 
 def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
-    if args.viewer != "none":
-        print("calibcoach: the Rerun viewer is not wired in yet; guidance goes to this terminal", file=sys.stderr)
     if args.record and args.resume:
         raise CalibcoachError("pass either --record DIR (a new recording) or --resume DIR (continue one), not both")
     source, focus = open_live_source(args)
@@ -112,14 +110,24 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
     if info.board and not (args.board or args.squares):
         board = BoardSpec.from_dict(dict(info.board))
     print(f"calibcoach: live on {info.description}; board {board.describe()}", file=sys.stderr)
-    with source:
+    with source, open_viewer(args) as viewer:
         locked = lock_focus(args, source, focus)
         status = LiveStatus(enabled=not args.quiet)
+
+        def on_outcome(outcome: FrameOutcome, frame: Frame, stats: LiveStats) -> None:
+            status(outcome, frame, stats)
+            viewer.log_frame(outcome, frame)
+
         try:
             session, stats = run_live(source, board, session_settings(args, info, live=True),
-                                      record=args.record, resume=args.resume, locked_controls=locked, on_outcome=status)
+                                      record=args.record, resume=args.resume, locked_controls=locked, on_outcome=on_outcome)
         finally:
             status.close()
+        return _finish_live(args, argv, info, session, stats, locked, viewer)
+
+
+def _finish_live(args: argparse.Namespace, argv: list[str], info: Any, session: Any, stats: LiveStats,
+                 locked: dict[str, float], viewer: Any) -> int:
     why = ("Ctrl-C" if stats.interrupted else "stop rule met (coverage complete, uncertainty on target)"
            if stats.stopped_early else "end of source")
     print(f"calibcoach: processed {stats.frames_processed} frames ({stats.processed_fps:.1f} fps, {stats.frames_dropped} "
@@ -153,11 +161,14 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
     elif args.write_to_device:
         print("calibcoach: --write-to-device applies to trusted DepthAI calibrations only; nothing was flashed",
               file=sys.stderr)
+    viewer.log_result(result, Path(args.out))
+    written.append(Path(args.out) / "session.rrd")
     cal = result.calibration
     print(f"{result.verdict.grade.upper()}: {cal.camera.model} model, RMS {cal.rms_px:.3f} px on {len(cal.views)} frames; "
           f"wrote {', '.join(p.name for p in written)} to {args.out}")
     for reason in result.verdict.reasons:
         print(f"  - {reason}")
+    keep_serving(viewer)
     return 0 if result.verdict.trusted else 3
 
 

@@ -1,0 +1,109 @@
+"""The real web viewer in a real headless browser: the person's screen during a replayed session.
+
+Debian's chromium renders Rerun's web viewer with software WebGL, which takes 15-30 s, so the page
+is driven over the DevTools protocol and given that time before the screenshot. Marked `browser`
+so it can be skipped locally (`pytest -m "not browser"`); CI installs chromium and runs it.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import socket
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.app.replay import run_replay
+from calibcoach.app.session import SessionSettings
+from calibcoach.app.viewer import Viewer
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.replay import open_source
+
+pytestmark = pytest.mark.browser
+RENDER_WAIT_S = 35.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def chromium_path() -> str:
+    path = shutil.which("chromium")
+    if path is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing on CI: .ci/run installs Debian's chromium package")
+        pytest.skip("chromium is not installed (apt-get install chromium); CI installs it")
+    return path
+
+
+def screenshot(url: str, out: Path, *, wait_s: float) -> np.ndarray:
+    """Open `url` in headless chromium, wait, and return the screenshot as a BGR image."""
+    import websocket
+
+    port = free_port()
+    profile = out.parent / "chromium-profile"
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync",
+             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--window-size=1600,1000", "about:blank"]
+    browser = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        tabs = None
+        for _ in range(200):
+            try:
+                tabs = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=1))
+                break
+            except OSError:
+                time.sleep(0.1)
+        assert tabs, "chromium's DevTools endpoint never came up"
+        page = next(t for t in tabs if t["type"] == "page")
+        ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60)
+        counter = iter(range(1, 1000))
+
+        def call(method: str, **params: object) -> dict:
+            call_id = next(counter)
+            ws.send(json.dumps({"id": call_id, "method": method, "params": params}))
+            while True:
+                message = json.loads(ws.recv())
+                if message.get("id") == call_id:
+                    return message
+
+        call("Page.enable")
+        call("Page.navigate", url=url)
+        time.sleep(wait_s)
+        data = base64.b64decode(call("Page.captureScreenshot", format="png")["result"]["data"])
+        ws.close()
+    finally:
+        browser.kill()
+        browser.wait()
+    out.write_bytes(data)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image
+
+
+def test_web_viewer_shows_the_camera_with_its_overlay(recordings_dir: Path, tmp_path: Path) -> None:
+    source = open_source(recordings_dir / "demo_webcam720_careful")
+    with Viewer.open("web", out_dir=tmp_path, web_port=free_port(), grpc_port=free_port()) as viewer:
+        assert viewer.url is not None and viewer.url.startswith("http://127.0.0.1:")
+        run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings(),
+                   on_outcome=lambda outcome, frame: viewer.log_frame(outcome, frame))
+        image = screenshot(viewer.url + "&renderer=webgl", tmp_path / "viewer.png", wait_s=RENDER_WAIT_S)
+    h, w = image.shape[:2]
+    camera_panel = image[int(0.12 * h):int(0.92 * h), : int(0.74 * w)].astype(int)
+    b, g, r = camera_panel[..., 0], camera_panel[..., 1], camera_panel[..., 2]
+    grey_scene = (np.abs(r - g) < 12) & (np.abs(g - b) < 12) & (g > 40) & (g < 230)
+    overlay = ((g > r + 60) & (g > b + 60)) | ((r > 200) & (g > 90) & (g < 200) & (b < 90)) | ((r > g + 80) & (r > b + 80))
+    # the camera frame fills the big panel (a blank or still-loading viewer is near-uniform) ...
+    assert grey_scene.mean() > 0.5 and camera_panel.std() > 20, f"see {tmp_path / 'viewer.png'}"
+    # ... and the coverage grid and corner markers are drawn over it
+    assert overlay.mean() > 0.005, f"no overlay colours in {tmp_path / 'viewer.png'}"
