@@ -38,7 +38,7 @@ import rerun as rr
 
 from calibcoach.app import viewer_blueprint as paths
 from calibcoach.app.session import FrameOutcome, SessionResult
-from calibcoach.coverage.grid import CoverageMap
+from calibcoach.coverage.grid import DISTANCE_CELLS, TILT_CELLS, CoverageMap
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibcoachError
 
@@ -231,8 +231,7 @@ class Viewer:
         rec.log(paths.COVERAGE_PCT, rr.Scalars(100.0 * p.coverage))
         if p.uncertainty_p95_px is not None:
             rec.log(paths.UNCERTAINTY_P95, rr.Scalars(p.uncertainty_p95_px))
-        if p.uncertainty_target_px != self._last_target:
-            self._last_target = p.uncertainty_target_px
+        if p.uncertainty_p95_px is not None:  # beside every p95 point, so the target draws as a line
             rec.log(paths.UNCERTAINTY_TARGET, rr.Scalars(p.uncertainty_target_px))
 
     def _log_coverage(self, outcome: FrameOutcome, frame: Frame, coverage: CoverageMap | None, scale: float) -> None:
@@ -254,6 +253,11 @@ class Viewer:
         self.recording.log(paths.COVERAGE, rr.Boxes2D(mins=mins, sizes=np.tile([cw, ch], (f.size, 1)), colors=colours,
                                                       labels=[f"{v * 100:.0f}%" for v in f], radii=1.0,
                                                       show_labels=False, draw_order=5.0))
+        # tilt and distance requirements, one bar each, 1.0 = met (the order is TILT_CELLS then DISTANCE_CELLS)
+        req = coverage.requirements
+        bars = [min(coverage.tilt_counts[c] / req.views_per_tilt_cell, 1.0) for c in TILT_CELLS]
+        bars += [min(coverage.distance_counts[c] / req.views_per_distance_cell, 1.0) for c in DISTANCE_CELLS]
+        self.recording.log(paths.TILT_DISTANCE, rr.BarChart(np.asarray(bars, np.float32)))
 
     def _log_guidance(self, outcome: FrameOutcome, size: tuple[int, int], scale: float) -> None:
         """The ghost outline where the board should go, and the sentence, when either changed."""

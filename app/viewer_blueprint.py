@@ -22,6 +22,7 @@ GUIDANCE = "guidance"
 DECISIONS = "log/decisions"
 ACCEPTED = "progress/accepted"
 COVERAGE_PCT = "progress/coverage_pct"
+TILT_DISTANCE = "progress/tilt_distance"  # bars: frontal, top/bottom/left/right away, steep x/y, far, mid, near
 UNCERTAINTY_P95 = "progress/uncertainty_p95_px"
 UNCERTAINTY_TARGET = "progress/uncertainty_target_px"
 REPORT = "report"
@@ -51,8 +52,9 @@ def session_blueprint() -> rrb.Blueprint:
                                name="Frames kept / coverage %"),
             rrb.TimeSeriesView(origin="progress", contents=[f"+ /{UNCERTAINTY_P95}", f"+ /{UNCERTAINTY_TARGET}"],
                                name="Uncertainty p95 vs target, px"),
+            rrb.BarChartView(origin=TILT_DISTANCE, name="Tilts: frontal, top/bottom/left/right away, steep x/y | far, mid, near"),
             rrb.TextLogView(origin=DECISIONS, name="Decisions"),
-            row_shares=[2, 1, 1, 1],
+            row_shares=[2, 1, 1, 1, 1],
         ),
         column_shares=[3, 1],
         name="Live",
