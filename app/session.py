@@ -93,6 +93,7 @@ class FrameOutcome:
     motion_px_s: float | None
     guidance: Guidance
     progress: Progress
+    camera: CameraModel  # the intrinsics the pose was estimated with (the bootstrap guess before any solve)
 
 
 @dataclass(frozen=True, slots=True)
@@ -264,7 +265,7 @@ class CalibrationSession:
     def _outcome(self, frame: Frame, detection: Detection, pose: BoardPose | None, decision: Decision,
                  blur: float | None, motion: float | None) -> FrameOutcome:
         return FrameOutcome(frame.index, frame.name, detection, pose, decision, blur, motion,
-                            next_guidance(self.selector.coverage), self.progress())
+                            next_guidance(self.selector.coverage), self.progress(), self.camera)
 
     # --- the end --------------------------------------------------------------------------------
     def finish(self) -> SessionResult:

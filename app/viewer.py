@@ -114,6 +114,8 @@ class Viewer:
         self._server = server
         self._closed = False
         self._coverage: CoverageMap | None = None  # mirror of the session's map, fed by accepted frames
+        self._last_log_s: float | None = None  # wall time of the previous log_frame, for processed fps
+        self._fps: float | None = None
         self._last_guidance: tuple[object, ...] | None = None
         self._last_target: float | None = None
 
@@ -219,6 +221,7 @@ class Viewer:
                                                labels=[decision.reason], show_labels=False))
         else:
             rec.log(paths.CORNERS, rr.Points2D(np.zeros((0, 2), np.float32)))
+        self._log_pose_axes(outcome, scale)
         level = "INFO" if decision.accepted else "WARN" if colour != _UNUSABLE else "DEBUG"
         rec.log(paths.DECISIONS, rr.TextLog(text, level=level, color=colour))
 
@@ -227,12 +230,36 @@ class Viewer:
         self._log_guidance(outcome, (w, h), scale)
 
         p = outcome.progress
+        now = time.perf_counter()
+        if self._last_log_s is not None and now > self._last_log_s:
+            # frames the pipeline processed per second, smoothed over ~10 frames
+            rate = 1.0 / (now - self._last_log_s)
+            self._fps = rate if self._fps is None else 0.9 * self._fps + 0.1 * rate
+            rec.log(paths.PROCESSED_FPS, rr.Scalars(self._fps))
+        self._last_log_s = now
         rec.log(paths.ACCEPTED, rr.Scalars(float(p.frames_accepted)))
         rec.log(paths.COVERAGE_PCT, rr.Scalars(100.0 * p.coverage))
         if p.uncertainty_p95_px is not None:
             rec.log(paths.UNCERTAINTY_P95, rr.Scalars(p.uncertainty_p95_px))
         if p.uncertainty_p95_px is not None:  # beside every p95 point, so the target draws as a line
             rec.log(paths.UNCERTAINTY_TARGET, rr.Scalars(p.uncertainty_target_px))
+
+    def _log_pose_axes(self, outcome: FrameOutcome, scale: float) -> None:
+        """The board's x (red), y (green) and z (blue, towards the camera) axes from the pose estimate."""
+        pose = outcome.pose
+        if pose is None:
+            self.recording.log(paths.AXES, rr.LineStrips2D([]))
+            return
+        obj = outcome.detection.object_points_m.astype(np.float64)
+        origin = obj.mean(axis=0)
+        length = 0.5 * float(np.ptp(obj[:, 0]) + np.ptp(obj[:, 1])) / 2 or 0.05
+        ends = origin + np.array([[0, 0, 0], [length, 0, 0], [0, length, 0], [0, 0, -length]])
+        px = outcome.camera.project(ends, pose.rvec, pose.tvec) * scale
+        if not np.all(np.isfinite(px)):
+            return
+        strips = [np.stack([px[0], px[k]]).astype(np.float32) for k in (1, 2, 3)]
+        self.recording.log(paths.AXES, rr.LineStrips2D(strips, colors=[(230, 40, 40), (40, 200, 40), (60, 90, 255)],
+                                                       radii=2.0, draw_order=20.0))
 
     def _log_coverage(self, outcome: FrameOutcome, frame: Frame, coverage: CoverageMap | None, scale: float) -> None:
         """Region cells as boxes over the preview: red (empty) to green (requirement met)."""

@@ -22,6 +22,8 @@ GUIDANCE = "guidance"
 DECISIONS = "log/decisions"
 ACCEPTED = "progress/accepted"
 COVERAGE_PCT = "progress/coverage_pct"
+AXES = "camera/axes"
+PROCESSED_FPS = "progress/processed_fps"
 TILT_DISTANCE = "progress/tilt_distance"  # bars: frontal, top/bottom/left/right away, steep x/y, far, mid, near
 UNCERTAINTY_P95 = "progress/uncertainty_p95_px"
 UNCERTAINTY_TARGET = "progress/uncertainty_target_px"
@@ -48,8 +50,8 @@ def session_blueprint() -> rrb.Blueprint:
         rrb.Spatial2DView(origin=CAMERA, name="Camera"),
         rrb.Vertical(
             rrb.TextDocumentView(origin=GUIDANCE, name="Next move"),
-            rrb.TimeSeriesView(origin="progress", contents=[f"+ /{ACCEPTED}", f"+ /{COVERAGE_PCT}"],
-                               name="Frames kept / coverage %"),
+            rrb.TimeSeriesView(origin="progress", contents=[f"+ /{ACCEPTED}", f"+ /{COVERAGE_PCT}", f"+ /{PROCESSED_FPS}"],
+                               name="Frames kept / coverage % / processed fps"),
             rrb.TimeSeriesView(origin="progress", contents=[f"+ /{UNCERTAINTY_P95}", f"+ /{UNCERTAINTY_TARGET}"],
                                name="Uncertainty p95 vs target, px"),
             rrb.BarChartView(origin=TILT_DISTANCE, name="Tilts: frontal, top/bottom/left/right away, steep x/y | far, mid, near"),

@@ -25,7 +25,7 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import open_source
 
 RECORDING = Path(__file__).resolve().parents[2] / "recordings" / "demo_webcam720_careful"
-REQUIRED_ENTITIES = ("camera/image", "camera/corners", "camera/target", "guidance", "progress/coverage_pct", "progress/tilt_distance",
+REQUIRED_ENTITIES = ("camera/image", "camera/corners", "camera/axes", "camera/target", "guidance", "progress/coverage_pct", "progress/tilt_distance", "progress/processed_fps",
                      "report/verdict", "report/per_frame_rms_px")
 
 
