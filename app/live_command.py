@@ -9,15 +9,13 @@ from pathlib import Path
 from typing import Any
 
 from calibcoach.app.commands import keep_serving, open_viewer, session_settings
-from calibcoach.app.live import FrameGrabber, LiveStats, PacedSource, run_live
+from calibcoach.app.live import LiveStats, PacedSource, run_live
 from calibcoach.app.outputs.report import write_session_outputs
 from calibcoach.app.session import FrameOutcome
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.base import Frame, FrameSource
 from calibcoach.drivers.errors import CalibcoachError
 from calibcoach.drivers.replay import open_source
-
-__all__ = ["FrameGrabber", "devices_command", "live_command"]
 
 
 def open_live_source(args: argparse.Namespace) -> tuple[FrameSource, Any | None]:
