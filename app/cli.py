@@ -101,7 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--out", type=Path, required=True, help="output folder")
 
     lv = sub.add_parser("live", help="guide a live capture (camera, or a file paced like one) until calibrated")
-    lv.add_argument("--source", required=True, help="v4l2:/dev/videoN | v4l2:N | depthai[:ID] | a video, folder or recording")
+    lv.add_argument("--source", required=True,
+                    help="v4l2:/dev/videoN | v4l2:N | depthai[:ID] | a video, folder or recording | auto (the first camera found)")
+    lv.add_argument("--fallback", help="with --source auto: what to run when no camera is attached (e.g. a recording)")
     lv.add_argument("--out", type=Path, required=True, help="output folder")
     lv.add_argument("--record", type=Path, help="record the session here as it happens (crash-safe)")
     lv.add_argument("--resume", type=Path, help="continue a recorded session (crashed, stopped or unplugged)")

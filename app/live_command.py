@@ -21,6 +21,11 @@ from calibcoach.drivers.replay import open_source
 def open_live_source(args: argparse.Namespace) -> tuple[FrameSource, Any | None]:
     """(source, focus controller or None) for v4l2:..., depthai[:ID] or any replay source (paced)."""
     spec = str(args.source)
+    if spec == "auto":
+        spec = first_camera() or args.fallback or ""
+        if not spec:
+            raise CalibcoachError("--source auto found no camera; attach one, or pass --fallback with a recording to run on")
+        print(f"calibcoach: --source auto chose {spec}", file=sys.stderr)
     if spec.startswith("v4l2:") or spec.startswith("/dev/video"):
         from calibcoach.drivers.v4l2 import V4L2Camera, parse_v4l2_target
 
@@ -33,6 +38,19 @@ def open_live_source(args: argparse.Namespace) -> tuple[FrameSource, Any | None]
                                lens_position=args.lens_position)
         return camera, camera.focus
     return PacedSource(open_source(spec), speed=args.speed), None
+
+
+def first_camera() -> str | None:
+    """The first usable camera as a --source spec: V4L2 devices first, then DepthAI; None if none."""
+    from calibcoach.drivers.oak import list_depthai_devices
+    from calibcoach.drivers.v4l2 import list_v4l2_devices
+
+    for device in list_v4l2_devices():
+        if "error" not in device:
+            return f"v4l2:{device['path']}"
+    for device in list_depthai_devices(timeout_s=2.0):
+        return f"depthai:{device['device_id']}"
+    return None
 
 
 def lock_focus(args: argparse.Namespace, source: FrameSource, focus: Any | None) -> dict[str, float]:

@@ -134,3 +134,14 @@ def test_live_on_a_depthai_camera_that_is_not_there_says_so(tmp_path: Path, caps
     code = main(["live", "--source", "depthai:0000000000", "--out", str(tmp_path / "o"), "--no-viewer"])
     assert code == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_source_auto_falls_back_when_no_camera_is_attached(recordings_dir: Path, tmp_path: Path, capsys) -> None:
+    # the README's first command: no camera on this machine, so the demo recording plays instead
+    code = main(["live", "--source", "auto", "--fallback", str(recordings_dir / DEMO), "--out", str(tmp_path / "o"),
+                 "--no-viewer", "--quiet", "--speed", "6"])
+    assert code == 0
+    assert f"--source auto chose {recordings_dir / DEMO}" in capsys.readouterr().err
+    assert (tmp_path / "o" / "camera_matrix.npy").exists() and (tmp_path / "o" / "session.rrd").exists()
+    assert main(["live", "--source", "auto", "--out", str(tmp_path / "p"), "--no-viewer"]) == 2
+    assert "found no camera" in capsys.readouterr().err
