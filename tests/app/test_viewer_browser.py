@@ -46,8 +46,12 @@ def chromium_path() -> str:
     return path
 
 
-def screenshot(url: str, out: Path, *, wait_s: float) -> np.ndarray:
-    """Open `url` in headless chromium, wait, and return the screenshot as a BGR image."""
+def screenshot(url: str, out: Path, *, wait_s: float, ready=None) -> np.ndarray:
+    """Open `url` in headless chromium and return a screenshot (BGR) once `ready(image)` holds.
+
+    Screenshots are taken every few seconds from `wait_s / 2` on, up to `2 * wait_s`: software
+    WebGL on a busy CI machine can take longer than on a quiet one, and a fixed sleep would flake.
+    """
     import websocket
 
     port = free_port()
@@ -79,16 +83,36 @@ def screenshot(url: str, out: Path, *, wait_s: float) -> np.ndarray:
 
         call("Page.enable")
         call("Page.navigate", url=url)
-        time.sleep(wait_s)
-        data = base64.b64decode(call("Page.captureScreenshot", format="png")["result"]["data"])
+        time.sleep(wait_s / 2)
+        deadline = time.monotonic() + 1.5 * wait_s
+        while True:
+            data = base64.b64decode(call("Page.captureScreenshot", format="png")["result"]["data"])
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+            assert image is not None
+            if ready is None or ready(image) or time.monotonic() > deadline:
+                break
+            time.sleep(4.0)
         ws.close()
     finally:
         browser.kill()
         browser.wait()
     out.write_bytes(data)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    assert image is not None
     return image
+
+
+def camera_panel_stats(image: np.ndarray) -> tuple[float, float, float]:
+    """(share of grey scene pixels, share of overlay-coloured pixels, std) in the big camera panel."""
+    h, w = image.shape[:2]
+    camera_panel = image[int(0.12 * h):int(0.92 * h), : int(0.74 * w)].astype(int)
+    b, g, r = camera_panel[..., 0], camera_panel[..., 1], camera_panel[..., 2]
+    grey_scene = (np.abs(r - g) < 12) & (np.abs(g - b) < 12) & (g > 40) & (g < 230)
+    overlay = ((g > r + 60) & (g > b + 60)) | ((r > 200) & (g > 90) & (g < 200) & (b < 90)) | ((r > g + 80) & (r > b + 80))
+    return float(grey_scene.mean()), float(overlay.mean()), float(camera_panel.std())
+
+
+def shows_camera_with_overlay(image: np.ndarray) -> bool:
+    grey, overlay, std = camera_panel_stats(image)
+    return grey > 0.5 and std > 20 and overlay > 0.005
 
 
 def test_web_viewer_shows_the_camera_with_its_overlay(recordings_dir: Path, tmp_path: Path) -> None:
@@ -97,13 +121,10 @@ def test_web_viewer_shows_the_camera_with_its_overlay(recordings_dir: Path, tmp_
         assert viewer.url is not None and viewer.url.startswith("http://127.0.0.1:")
         run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings(),
                    on_outcome=lambda outcome, frame: viewer.log_frame(outcome, frame))
-        image = screenshot(viewer.url + "&renderer=webgl", tmp_path / "viewer.png", wait_s=RENDER_WAIT_S)
-    h, w = image.shape[:2]
-    camera_panel = image[int(0.12 * h):int(0.92 * h), : int(0.74 * w)].astype(int)
-    b, g, r = camera_panel[..., 0], camera_panel[..., 1], camera_panel[..., 2]
-    grey_scene = (np.abs(r - g) < 12) & (np.abs(g - b) < 12) & (g > 40) & (g < 230)
-    overlay = ((g > r + 60) & (g > b + 60)) | ((r > 200) & (g > 90) & (g < 200) & (b < 90)) | ((r > g + 80) & (r > b + 80))
+        image = screenshot(viewer.url + "&renderer=webgl", tmp_path / "viewer.png", wait_s=RENDER_WAIT_S,
+                           ready=shows_camera_with_overlay)
+    grey, overlay, std = camera_panel_stats(image)
     # the camera frame fills the big panel (a blank or still-loading viewer is near-uniform) ...
-    assert grey_scene.mean() > 0.5 and camera_panel.std() > 20, f"see {tmp_path / 'viewer.png'}"
-    # ... and the coverage grid and corner markers are drawn over it
-    assert overlay.mean() > 0.005, f"no overlay colours in {tmp_path / 'viewer.png'}"
+    assert grey > 0.5 and std > 20, f"see {tmp_path / 'viewer.png'}"
+    # ... and the coverage grid, corner markers and pose axes are drawn over it
+    assert overlay > 0.005, f"no overlay colours in {tmp_path / 'viewer.png'}"
