@@ -94,6 +94,7 @@ class FrameOutcome:
     guidance: Guidance
     progress: Progress
     camera: CameraModel  # the intrinsics the pose was estimated with (the bootstrap guess before any solve)
+    coverage: CoverageMap  # the session's live map (shared, not a copy: read it before the next frame)
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,7 +266,7 @@ class CalibrationSession:
     def _outcome(self, frame: Frame, detection: Detection, pose: BoardPose | None, decision: Decision,
                  blur: float | None, motion: float | None) -> FrameOutcome:
         return FrameOutcome(frame.index, frame.name, detection, pose, decision, blur, motion,
-                            next_guidance(self.selector.coverage), self.progress(), self.camera)
+                            next_guidance(self.selector.coverage), self.progress(), self.camera, self.selector.coverage)
 
     # --- the end --------------------------------------------------------------------------------
     def finish(self) -> SessionResult:

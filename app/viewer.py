@@ -113,7 +113,6 @@ class Viewer:
         self.notice = notice  # a fallback the caller should tell the person about, e.g. no display
         self._server = server
         self._closed = False
-        self._coverage: CoverageMap | None = None  # mirror of the session's map, fed by accepted frames
         self._last_log_s: float | None = None  # wall time of the previous log_frame, for processed fps
         self._last_progress: tuple | None = None  # last (accepted, coverage, p95) logged
         self._fps: float | None = None
@@ -194,13 +193,12 @@ class Viewer:
         self.close()
 
     # --- live ---------------------------------------------------------------------------------
-    def log_frame(self, outcome: FrameOutcome, frame: Frame, *, coverage: CoverageMap | None = None) -> None:
+    def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         """Log one processed frame: preview image, corners by fate, decision, guidance, progress.
 
         The image goes out every frame (it is the live view); the coverage boxes and the guidance
-        only when they change, since latest-at queries keep showing the last value. `coverage` is
-        the session's own map when the caller has it; otherwise a mirror is kept from the accepted
-        frames (same contributions, default requirements).
+        only when they change, since latest-at queries keep showing the last value. Coverage is
+        read from the session's own map on the outcome, so custom requirements show as they are.
         """
         rec = self.recording
         rec.set_time("frame", sequence=frame.index)
@@ -231,7 +229,7 @@ class Viewer:
         rec.log(paths.DECISIONS, rr.TextLog(text, level=level, color=colour))
 
         if decision.accepted:
-            self._log_coverage(outcome, frame, coverage, scale)
+            self._log_coverage(outcome.coverage, frame, scale)
         self._log_guidance(outcome, (w, h), scale)
 
         p = outcome.progress
@@ -271,14 +269,8 @@ class Viewer:
         self.recording.log(paths.AXES, rr.LineStrips2D(strips, colors=[(230, 40, 40), (40, 200, 40), (60, 90, 255)],
                                                        radii=2.0, draw_order=20.0))
 
-    def _log_coverage(self, outcome: FrameOutcome, frame: Frame, coverage: CoverageMap | None, scale: float) -> None:
+    def _log_coverage(self, coverage: CoverageMap, frame: Frame, scale: float) -> None:
         """Region cells as boxes over the preview: red (empty) to green (requirement met)."""
-        if coverage is None:
-            if self._coverage is None:
-                self._coverage = CoverageMap(frame.image_size)
-            self._coverage.add(self._coverage.contribution(outcome.detection, outcome.pose),
-                               outcome.pose.footprint if outcome.pose is not None else None)
-            coverage = self._coverage
         fill = coverage.region_fill()
         rows, cols = fill.shape
         w, h = frame.image_size
