@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
     cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    cal.add_argument("--every-frame", action="store_true",
+                     help="decode and detect every frame of an image folder (default: pass over frames whose "
+                          "neighbours show the same view)")
     cal.add_argument("--quiet", action="store_true", help="no progress line")
     add_viewer_arguments(cal, default="none")
     add_board_arguments(cal)

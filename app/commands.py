@@ -85,7 +85,10 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
 
         with source:
             try:
-                session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=on_outcome)
+                # A small folder of photos is kept whole; a long sequence is read sparsely unless asked not to.
+                every_frame = args.every_frame or settings.selector.keep_all_usable
+                session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=on_outcome,
+                                            every_frame=every_frame)
             finally:
                 progress.close()
         return _finish_replay(args, argv, source, info, session, stats, viewer)
@@ -124,7 +127,9 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
         else "stop rule met (coverage complete, uncertainty on target)" if stats.stopped_early
         else "end of source"
     )
-    print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}); "
+    passed = (f", passed over {stats.passed_over} that repeated their neighbours' view (--every-frame reads them)"
+              if stats.passed_over else "")
+    print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{passed}); "
           f"kept {len(session.views)}; solving...", file=sys.stderr)
     result = session.finish()
     rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])

@@ -15,10 +15,11 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
+from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
-from calibcoach.drivers.base import Frame, FrameSource
+from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 
 _SETTLE_FRAMES = 30  # frames detected one by one while the print's variant is still unknown
@@ -32,6 +33,7 @@ class ReplayStats:
     interrupted: bool  # Ctrl-C: the session holds every frame accepted until then
     board: BoardSpec  # with legacy/inverted settled
     variant_found: str | None
+    passed_over: int = 0  # frames of a sparse scan never decoded: they repeated their neighbours' view
 
 
 class _ThreadDetectors:
@@ -49,19 +51,40 @@ class _ThreadDetectors:
 
 
 def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
-                    settle: CharucoBoardDetector | None = None) -> Iterator[tuple[Frame, Detection]]:
-    """Yield (frame, detection) in source order, detecting ahead on `workers` threads."""
+                    settle: CharucoBoardDetector | None = None, scans_out: list[SparseScan] | None = None,
+                    every_frame: bool = False) -> Iterator[tuple[Frame, Detection]]:
+    """Yield (frame, detection) in source order, detecting ahead on `workers` threads.
+
+    Sources with random access (image folders) are read by a `SparseScan` that passes over frames
+    repeating their neighbours' view, unless `every_frame`; the scan is appended to `scans_out` so
+    the caller can report how much was passed over.
+    """
     first = settle or CharucoBoardDetector(board)
+    count = None if every_frame else source.frame_count_for_random_access
+    if count is not None:
+        source.skipped = []
+        index = 0
+        while index < count:  # detect one by one until the print's legacy/inverted variant is known
+            item = source.load(index)
+            index += 1
+            if isinstance(item, SkippedFrame):
+                source.skipped.append(item)
+                continue
+            yield item, first.detect(item.grey())
+            if first.settled or item.index >= _SETTLE_FRAMES:
+                break
+        detectors = _ThreadDetectors(_settled_spec(first))
+        sparse = SparseScan(source, detectors.detect, start=index, workers=workers)
+        if scans_out is not None:
+            scans_out.append(sparse)
+        yield from sparse
+        return
     frames = iter(source)
     for frame in frames:  # detect sequentially until the print's legacy/inverted variant is known
         yield frame, first.detect(frame.grey())
         if first.settled or frame.index >= _SETTLE_FRAMES:
             break
-    if not first.settled:
-        spec = first.spec.with_detected(legacy=bool(first.spec.legacy), inverted=bool(first.spec.inverted))
-    else:
-        spec = first.spec
-    detectors = _ThreadDetectors(spec)
+    detectors = _ThreadDetectors(_settled_spec(first))
     pending: deque[tuple[Frame, Future[Detection]]] = deque()
     with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="detect") as pool:
         try:
@@ -78,6 +101,13 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
                 fut.cancel()
 
 
+def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
+    """The board as settled, or with the variants not yet seen taken as plain."""
+    if detector.settled:
+        return detector.spec
+    return detector.spec.with_detected(legacy=bool(detector.spec.legacy), inverted=bool(detector.spec.inverted))
+
+
 def _with_end(stream: Iterator[tuple[Frame, Detection]]) -> Iterator[tuple[Frame, Detection] | None]:
     yield from stream
     yield None
@@ -90,8 +120,12 @@ def run_replay(
     *,
     workers: int = 2,
     on_outcome: Callable[[FrameOutcome, Frame], None] | None = None,
+    every_frame: bool = False,
 ) -> tuple[CalibrationSession, ReplayStats]:
-    """Feed every frame of `source` to a new session until the source ends or the stop rule is met."""
+    """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
+
+    Image folders are read sparsely (see app/scan.py) unless `every_frame`; other sources in full.
+    """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
     settle = CharucoBoardDetector(board)
@@ -99,7 +133,8 @@ def run_replay(
     start = time.perf_counter()
     read = 0
     stopped = interrupted = False
-    stream = detected_frames(source, board, workers=workers, settle=settle)
+    scans: list[SparseScan] = []
+    stream = detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
     held: tuple[Frame, Detection] | None = None  # one frame of lookahead for the two-sided stillness test
     try:
         for item in _with_end(stream):
@@ -125,4 +160,6 @@ def run_replay(
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
-    return session, ReplayStats(read, time.perf_counter() - start, stopped, interrupted, settle.spec, settle.variant_found)
+    passed_over = sum(scan.passed_over for scan in scans)
+    return session, ReplayStats(read, time.perf_counter() - start, stopped, interrupted, settle.spec, settle.variant_found,
+                                passed_over)

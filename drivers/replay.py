@@ -192,7 +192,8 @@ class ImageFolderSource(FrameSource):
         )
         if not self._files:
             raise SourceError(_no_images_message(self.path))
-        first = next((image for image in map(_read_image, self._files) if image is not None), None)
+        first, self._first_name = next(
+            ((image, path.name) for path in self._files if (image := _read_image(path)) is not None), (None, ""))
         if first is None:
             raise SourceError(
                 f"none of the {len(self._files)} images in {self.path} decodes (e.g. {self._files[0].name}); "
@@ -210,22 +211,32 @@ class ImageFolderSource(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         self.skipped = []
+        for index, image in enumerate(_decoded_ahead(self._files)):
+            item = self._frame_or_skip(index, image)
+            if isinstance(item, SkippedFrame):
+                self.skipped.append(item)
+                continue
+            yield item
+
+    @property
+    def frame_count_for_random_access(self) -> int:
+        return len(self._files)
+
+    def load(self, index: int) -> Frame | SkippedFrame:
+        return self._frame_or_skip(index, _read_image(self._files[index]))
+
+    def _frame_or_skip(self, index: int, image: np.ndarray | None) -> Frame | SkippedFrame:
+        """The frame, or why it is skipped; image: (H, W) uint8 grey or (H, W, 3) uint8 BGR, or None."""
+        path = self._files[index]
+        if image is None:
+            return SkippedFrame(index, path.name, _unreadable_reason(path))
+        size = (int(image.shape[1]), int(image.shape[0]))
+        if size != self._image_size:
+            return SkippedFrame(index, path.name, (
+                f"image is {size[0]}x{size[1]} but the first image ({self._first_name}) is "
+                f"{self._image_size[0]}x{self._image_size[1]}; all images must share one camera resolution"))
         period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
-        reference: tuple[str, tuple[int, int]] | None = None  # (file name, (width, height)) of the first image
-        for (index, path), image in zip(enumerate(self._files), _decoded_ahead(self._files), strict=True):
-            # image: (H, W) uint8 grey or (H, W, 3) uint8 BGR, or None
-            if image is None:
-                self.skipped.append(SkippedFrame(index, path.name, _unreadable_reason(path)))
-                continue
-            size = (int(image.shape[1]), int(image.shape[0]))
-            if reference is None:
-                reference = (path.name, size)
-            elif size != reference[1]:
-                self.skipped.append(SkippedFrame(index, path.name, (
-                    f"image is {size[0]}x{size[1]} but the first image ({reference[0]}) is "
-                    f"{reference[1][0]}x{reference[1][1]}; all images must share one camera resolution")))
-                continue
-            yield Frame(index=index, timestamp_ns=round(index * period_ns), image=image, name=path.name)
+        return Frame(index=index, timestamp_ns=round(index * period_ns), image=image, name=path.name)
 
 
 class RecordingSource(FrameSource):

@@ -23,6 +23,8 @@ from calibcoach.drivers.lens import CameraModel
 MIN_VIEWS_FOR_CROSS_VALIDATION = 8
 _MARGIN = 1.05  # a more complex model must beat the simpler one's held-out error by more than 5 %
 _MARGIN_PX = 0.005
+_NARROW_DEG = 80.0  # below this a pinhole solve sees the lens right and fisheye is never the answer
+_PINHOLE_FITS_PX = 1.0  # a pinhole solve this close says the lens is no fisheye
 
 
 def held_out_rms(camera: CameraModel, views: Sequence[View]) -> float:
@@ -78,12 +80,18 @@ def _refine_pose(camera: CameraModel, view: View, rvec: np.ndarray, tvec: np.nda
 
 
 def candidate_order(hfov_deg: float) -> list[str]:
-    """Candidates, simplest first for this field of view."""
+    """Candidates, simplest first for this field of view.
+
+    Below ~80 deg Kannala-Brandt is not a candidate: no lens that narrow needs it, and its
+    cross-validation costs more than the rest of the model choice together.
+    """
     if hfov_deg >= 120.0:
         return ["fisheye", "rational"]
     if hfov_deg >= 90.0:
         return ["rational", "fisheye", "pinhole"]
-    return ["pinhole", "rational", "fisheye"]
+    if hfov_deg >= _NARROW_DEG:
+        return ["pinhole", "rational", "fisheye"]
+    return ["pinhole", "rational"]
 
 
 def choose_model(views: Sequence[View], image_size: tuple[int, int]) -> ModelChoice:
@@ -135,4 +143,6 @@ def estimate_hfov_deg(views: Sequence[View], image_size: tuple[int, int]) -> flo
         hfov = raw.camera.field_of_view_deg()[0]
         if np.isfinite(hfov) and 1.0 < hfov < 250.0 and (best is None or raw.rms_px < best[0]):
             best = (raw.rms_px, hfov)
+        if model == "pinhole" and best is not None and best[0] < _PINHOLE_FITS_PX and best[1] < _NARROW_DEG:
+            break  # a narrow lens the pinhole model fits: the fisheye solve could only agree
     return 70.0 if best is None else best[1]
