@@ -76,7 +76,7 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
     if info.board and not (args.board or args.squares):
         board = BoardSpec.from_dict(dict(info.board))  # a recording knows its board
     print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)
-    with open_viewer(args) as viewer:
+    with open_replay_viewer(args) as viewer:
         progress = ProgressLine(info.frame_count, enabled=not args.quiet)
 
         def on_outcome(outcome: FrameOutcome, frame: Frame) -> None:
@@ -104,6 +104,20 @@ def open_viewer(args: argparse.Namespace):
     if viewer.notice:
         print(f"calibcoach: {viewer.notice}", file=sys.stderr)
     return viewer
+
+
+def open_replay_viewer(args: argparse.Namespace):
+    """A replay that only saves session.rrd logs on a thread of its own; one shown live logs directly."""
+    if args.viewer != "none":
+        return open_viewer(args)
+    from calibcoach.app.viewer_thread import BackgroundViewer
+
+    def open_saving_only():
+        from calibcoach.app.viewer import Viewer  # imported on the logging thread: rerun takes ~0.8 s to load
+
+        return Viewer.open("none", out_dir=Path(args.out))
+
+    return BackgroundViewer(open_saving_only)
 
 
 def keep_serving(viewer) -> None:

@@ -11,18 +11,25 @@ Each result is scored by its projection error against the lens truth over the im
 board covered (after the one rotation any extrinsic absorbs), with the frames it used and whether
 it accepted a calibration that is off by more than 0.5 px there.
 
+Frame efficiency: each method's frames in the order it took them, solved with the plain
+calibrateCamera after 6, 8, 10 ... 60 frames and scored over the region every usable frame of the
+capture covered (a common yardstick, so a method that never leaves the centre cannot look good by
+being judged only where it looked). Reported: frames needed to reach 0.1 px, and the curves.
+
 Rendering costs ~0.4 s per 720p frame, so rendered sessions are cached as recordings in
-bench/cache/ (git-ignored). Usage:
+bench/cache/ (git-ignored). `--seed` renders captures no run has seen before. Usage:
 
-    .venv/bin/python bench/accuracy.py [--only webcam720_careful] [--seconds 30] [--fps 8]
+    .venv/bin/python bench/accuracy.py [--only webcam720_careful] [--seconds 30] [--fps 8] [--seed 7]
 
-Writes bench/results/accuracy.md and prints the same table.
+Writes bench/results/accuracy.md, bench/results/efficiency_<session>.png and prints the tables.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -40,19 +47,21 @@ from calibcoach.drivers.replay import open_source
 from calibcoach.drivers.sim import LENSES, SimulatedCamera, handheld_trajectory
 
 ROOT = Path(__file__).resolve().parent  # a bench script may find its own folder; the package never does
+sys.path.insert(0, str(ROOT))  # bench/plots.py
 SESSIONS = [(lens, style) for lens in ("webcam720", "wide720", "fisheye150") for style in ("careful", "sloppy", "frontal")]
 BAD_PX = 0.5
 
 
-def rendered(lens: str, style: str, *, seconds: float, fps: float) -> Path:
-    folder = ROOT / "cache" / f"{lens}_{style}_{seconds:g}s_{fps:g}fps"
+def rendered(lens: str, style: str, *, seconds: float, fps: float, seed: int = 7) -> Path:
+    suffix = "" if seed == 7 else f"_seed{seed}"  # seed 7's folders predate the option
+    folder = ROOT / "cache" / f"{lens}_{style}_{seconds:g}s_{fps:g}fps{suffix}"
     if (folder / "truth.json").exists():
         return folder
     spec = BoardSpec()
     camera = LENSES[lens]
-    trajectory = handheld_trajectory(camera, spec, style, seconds=seconds, seed=7)
+    trajectory = handheld_trajectory(camera, spec, style, seconds=seconds, seed=seed)
     poses = trajectory.sample(seconds=seconds, fps=fps)
-    source = SimulatedCamera(camera, spec, poses, seed=7, lens_name=lens, trajectory=trajectory)
+    source = SimulatedCamera(camera, spec, poses, seed=seed, lens_name=lens, trajectory=trajectory)
     start = time.perf_counter()
     with RecordingWriter(folder, camera_id=source.info.camera_id, kind="sim", image_size=camera.image_size, fps=fps,
                          controls={}, board=spec.to_dict()) as writer:
@@ -63,9 +72,10 @@ def rendered(lens: str, style: str, *, seconds: float, fps: float) -> Path:
     return folder
 
 
-def detections(folder: Path) -> list[Detection]:
+def detections(folder: Path) -> dict[int, Detection]:
+    """Every frame's detection, by frame index."""
     detector = CharucoBoardDetector(BoardSpec())
-    return [detector.detect(frame.grey()) for frame in open_source(folder)]
+    return {frame.index: detector.detect(frame.grey()) for frame in open_source(folder)}
 
 
 def solve_plain(views: list[Detection], camera: CameraModel) -> CameraModel:
@@ -115,27 +125,81 @@ def score(truth: CameraModel, estimate: CameraModel, corner_sets: list[np.ndarra
     return projection_difference(truth, estimate, grid=(32, 18), mask=mask).rms_px
 
 
-def evaluate(folder: Path) -> list[tuple[str, float, int, str]]:
+@dataclass
+class Method:
+    """One way of calibrating a capture: the frames it took, in the order it took them."""
+
+    name: str
+    frames: list[Detection]
+    error_px: float = float("nan")  # against the truth over the region its own frames covered
+    outcome: str = ""
+    curve: tuple[list[int], list[float]] = ((), ())  # frames used -> error over the capture's whole covered region
+
+
+PREFIXES = (6, 8, 10, 12, 15, 20, 25, 30, 40, 50, 60)
+EFFICIENCY_TARGET_PX = 0.1
+
+
+def efficiency_curve(truth: CameraModel, frames: list[Detection], yardstick: list[np.ndarray]) -> tuple[list[int], list[float]]:
+    """Error against the truth after the first k frames, over the region the whole capture covered."""
+    mask = covered_region_mask(truth.image_size, yardstick, (32, 18))
+    ks, errors = [], []
+    for k in PREFIXES:
+        if k > len(frames):
+            break
+        try:
+            estimate = solve_plain(frames[:k], truth)
+            errors.append(projection_difference(truth, estimate, grid=(32, 18), mask=mask).rms_px)
+        except cv2.error:
+            errors.append(float("nan"))
+        ks.append(k)
+    return ks, errors
+
+
+def frames_to_target(curve: tuple[list[int], list[float]]) -> str:
+    """The first prefix from which the error stays at or under the target ("never" if it does not get there)."""
+    ks, errors = curve
+    for i, k in enumerate(ks):
+        if all(np.isfinite(e) and e <= EFFICIENCY_TARGET_PX for e in errors[i:]):
+            return str(k)
+    return "never"
+
+
+def evaluate(folder: Path) -> list[Method]:
     truth = read_truth(folder).camera
     dets = detections(folder)
-    usable = [d for d in dets if d.corner_count >= 6]
-    rows = []
+    usable = [d for d in dets.values() if d.corner_count >= 6]
     step = max(1, len(usable) // 60)
-    plain = usable[::step][:60]
-    for name, chosen in (("plain every Nth", plain), ("ROS-style", select_ros(dets, truth.image_size))):
+    methods = [Method("plain every Nth", usable[::step][:60]), Method("ROS-style", select_ros(list(dets.values()), truth.image_size))]
+    for method in methods:
         try:
-            err = score(truth, solve_plain(chosen, truth), [d.corners_px for d in chosen])
+            method.error_px = score(truth, solve_plain(method.frames, truth), [d.corners_px for d in method.frames])
+            method.outcome = "accepted" + (" (BAD)" if method.error_px > BAD_PX else "")
         except cv2.error as exc:
-            rows.append((name, float("nan"), len(chosen), f"crashed: {str(exc).strip().splitlines()[-1][:60]}"))
-            continue
-        rows.append((name, err, len(chosen), "accepted" + (" (BAD)" if err > BAD_PX else "")))
+            method.outcome = f"crashed: {str(exc).strip().splitlines()[-1][:60]}"
     source = open_source(folder)
     session, _ = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
+    live_order = [v.frame_index for v in session.views]  # accepted while capturing, in that order
     result = session.finish()
-    err = score(truth, result.calibration.camera, [v.image_points_px for v in result.calibration.views])
-    verdict = result.verdict.grade + (" (BAD)" if result.verdict.trusted and err > BAD_PX else "")
-    rows.append(("calibcoach", err, len(result.calibration.views), verdict))
-    return rows
+    final = {v.frame_index for v in result.calibration.views}
+    order = [i for i in live_order if i in final] + sorted(final - set(live_order))  # then the budget fill
+    ours = Method("calibcoach", [dets[i] for i in order])
+    ours.error_px = score(truth, result.calibration.camera, [v.image_points_px for v in result.calibration.views])
+    ours.outcome = result.verdict.grade + (" (BAD)" if result.verdict.trusted and ours.error_px > BAD_PX else "")
+    methods.append(ours)
+    yardstick = [d.corners_px for d in usable]
+    for method in methods:
+        method.curve = efficiency_curve(truth, method.frames, yardstick)
+    return methods
+
+
+def efficiency_picture(name: str, methods: list[Method]) -> np.ndarray:
+    from plots import line_chart  # bench/plots.py, beside this script
+
+    series = {m.name: ([float(k) for k in m.curve[0]], [float(e) for e in m.curve[1]]) for m in methods if m.curve[0]}
+    return line_chart(series, title=f"{name}: projection error vs truth by frames used",
+                      x_label="frames used (in the order the method took them)",
+                      y_label="error over the covered image, px", log_y=True, hline=EFFICIENCY_TARGET_PX)
 
 
 def main() -> int:
@@ -143,19 +207,30 @@ def main() -> int:
     parser.add_argument("--only", help="one session, e.g. webcam720_careful")
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--fps", type=float, default=8.0)
+    parser.add_argument("--seed", type=int, default=7, help="another seed renders captures never seen before")
     args = parser.parse_args()
-    lines = ["| session | method | projection error vs truth, px | frames | outcome |", "|---|---|---|---|---|"]
+    accuracy = ["| session | method | projection error vs truth, px | frames | outcome |", "|---|---|---|---|---|"]
+    efficiency = [f"| session | method | frames to reach {EFFICIENCY_TARGET_PX} px | error after 20 frames, px |", "|---|---|---|---|"]
+    results = ROOT / "results"
+    results.mkdir(parents=True, exist_ok=True)
     for lens, style in SESSIONS:
-        if args.only and args.only != f"{lens}_{style}":
+        name = f"{lens}_{style}"
+        if args.only and args.only != name:
             continue
-        folder = rendered(lens, style, seconds=args.seconds, fps=args.fps)
-        for method, err, frames, outcome in evaluate(folder):
-            line = f"| {lens} {style} | {method} | {err:.4f} | {frames} | {outcome} |"
+        folder = rendered(lens, style, seconds=args.seconds, fps=args.fps, seed=args.seed)
+        methods = evaluate(folder)
+        for m in methods:
+            line = f"| {lens} {style} | {m.name} | {m.error_px:.4f} | {len(m.frames)} | {m.outcome} |"
             print(line, flush=True)
-            lines.append(line)
-    out = ROOT / "results" / "accuracy.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
+            accuracy.append(line)
+            at20 = dict(zip(*m.curve, strict=True)).get(20, float("nan"))
+            efficiency.append(f"| {lens} {style} | {m.name} | {frames_to_target(m.curve)} | {at20:.4f} |")
+        cv2.imwrite(str(results / f"efficiency_{name}.png"), efficiency_picture(f"{lens} {style}", methods))
+    text = (f"Captures: {args.seconds:g} s at {args.fps:g} fps, seed {args.seed}; BAD = accepted although more than "
+            f"{BAD_PX} px wrong.\n\n" + "\n".join(accuracy) + "\n\n## Frame efficiency\n\n" + "\n".join(efficiency) + "\n")
+    out = results / "accuracy.md"
+    out.write_text(text)
+    print("\n".join(efficiency))
     print(f"wrote {out}")
     return 0
 

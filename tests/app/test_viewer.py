@@ -9,7 +9,6 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import rerun.chunk as rrc
 
 from calibcoach.app.replay import run_replay
 from calibcoach.app.session import SessionSettings
-from calibcoach.app.viewer import PREVIEW_MAX_WIDTH, Viewer, ViewerError
+from calibcoach.app.viewer import Viewer, ViewerError
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import open_source
 
@@ -33,7 +32,6 @@ REQUIRED_ENTITIES = ("camera/image", "camera/corners", "camera/axes", "camera/ta
 class Run:
     rrd: Path
     frames_logged: int
-    ms_per_frame: float
     grade: str
 
 
@@ -59,12 +57,11 @@ def chunks_by_entity(rrd: Path) -> dict[str, list[rrc.Chunk]]:
 def replayed(tmp_path_factory: pytest.TempPathFactory) -> Run:
     out = tmp_path_factory.mktemp("viewer")
     viewer = Viewer.open("none", out_dir=out)
-    costs: list[float] = []
+    logged: list[int] = []
 
     def log(outcome, frame) -> None:  # noqa: ANN001 - the replay's callback signature
-        start = time.perf_counter()
         viewer.log_frame(outcome, frame)
-        costs.append(time.perf_counter() - start)
+        logged.append(frame.index)
 
     try:
         source = open_source(RECORDING)
@@ -77,7 +74,7 @@ def replayed(tmp_path_factory: pytest.TempPathFactory) -> Run:
     finally:
         viewer.close()
     viewer.close()  # idempotent
-    return Run(viewer.rrd_path, len(costs), 1000 * float(np.median(costs)), result.verdict.grade)
+    return Run(viewer.rrd_path, len(logged), result.verdict.grade)
 
 
 def test_saved_recording_passes_rerun_verify(replayed: Run) -> None:
@@ -108,12 +105,6 @@ def test_saved_recording_holds_the_live_and_report_entities(replayed: Run) -> No
 
 def test_saved_recording_carries_the_blueprint(replayed: Run) -> None:
     assert len(rrc.RrdReader(str(replayed.rrd)).blueprints()) == 1
-
-
-def test_per_frame_cost_is_small(replayed: Run) -> None:
-    # 1280x720 in, 960 px JPEG out: measured ~5 ms here; 30 ms would eat a live camera's frame budget
-    assert PREVIEW_MAX_WIDTH == 960
-    assert replayed.ms_per_frame < 30.0
 
 
 def test_web_mode_serves_on_localhost_only(tmp_path: Path) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import errno
 import itertools
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -323,12 +322,10 @@ def test_status_and_snapshot_report_by_our_names(camera: FakeCamera, device: Dev
     assert camera.writes == []  # reading never writes
 
 
-def test_list_v4l2_devices_on_this_machine_is_empty_and_fast() -> None:
+def test_list_v4l2_devices_on_this_machine_is_empty() -> None:
     if list(Path("/dev").glob("video*")):
         pytest.skip("this machine has /dev/video* nodes")
-    start = time.perf_counter()
     assert list_v4l2_devices() == []
-    assert time.perf_counter() - start < 1.0
 
 
 def test_list_v4l2_devices_describes_cameras_and_reports_unopenable(tmp_path: Path,

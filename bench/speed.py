@@ -1,0 +1,310 @@
+"""Speed: per-frame cost by stage and resolution, solve time against frame count, replay throughput.
+
+1. Per frame at 720p, 1080p and 4K, on a few rendered frames of a careful handheld capture:
+   PNG decode, bare OpenCV `detectBoard` (default threads and one thread), calibcoach detection,
+   the session step and Rerun logging (to a file only), each frame timed on its own after a
+   warm-up frame; median and p90.
+2. `solve()` time against the number of views for the pinhole, rational and fisheye models, on the
+   detections of the cached careful 720p capture, and `finish()` after a whole replay of it.
+3. Replay throughput (frames/s) of that recording, and of an image folder given with --folder.
+
+Rendered frames are cached as recordings in bench/cache/ (git-ignored) and reused. Usage:
+
+    .venv/bin/python bench/speed.py [--folder IMAGES] [--skip-solve]
+
+Writes bench/results/speed.md, speed_per_frame.png and solve_time.png, and prints the tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from datetime import date
+from pathlib import Path
+
+import cv2
+import numpy as np
+from plots import grouped_bars, line_chart, save
+
+from calibcoach.app.replay import run_replay
+from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
+from calibcoach.app.solve.calibrate import solve
+from calibcoach.app.solve.result import View
+from calibcoach.app.viewer import Viewer
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.drivers.base import Frame
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.recording import RecordingWriter
+from calibcoach.drivers.replay import open_source
+from calibcoach.drivers.sim import LENSES, SimulatedCamera, handheld_trajectory
+
+ROOT = Path(__file__).resolve().parent  # a bench script may find its own folder; the package never does
+RESULTS = ROOT / "results"
+DEFAULT_THREADS = cv2.getNumThreads()  # read before any CalibrationSession sets it to 1
+CORES = 2  # replay's detection workers; the machine this was written for has 2
+# (name, lens, frames): few frames, since rendering costs ~0.4 s per 720p frame and ~9x that at 4K
+RESOLUTIONS = [
+    ("720p", LENSES["webcam720"], 10),
+    ("1080p", LENSES["webcam1080"], 10),
+    ("4K", LENSES["webcam1080"].resized((3840, 2160)), 6),
+]
+# Two frames a second spread the few frames over moves and dwells: the board is found in about 7 of
+# 10 (the others are blurred by a move), as in a real careful capture.
+RENDER_FPS = 2.0
+SOLVE_CAPTURE = "webcam720_careful_30s_8fps"
+SOLVE_COUNTS = (10, 20, 40, 60, 100)
+SOLVE_MODELS = ("pinhole", "rational", "fisheye")
+LIVE_FPS = 30.0
+
+
+# --- rendering ------------------------------------------------------------------------------------
+def rendered_speed_capture(name: str, camera, frames: int) -> Path:
+    """A cached recording of `frames` frames of a careful handheld path, two a second."""
+    folder = ROOT / "cache" / f"speed_{name}_{RENDER_FPS:g}fps"
+    if (folder / "session.json").exists() and len(list((folder / "frames").glob("*.png"))) >= frames:
+        return folder
+    spec = BoardSpec()
+    seconds = frames / RENDER_FPS
+    trajectory = handheld_trajectory(camera, spec, "careful", seconds=seconds, seed=7)
+    poses = trajectory.sample(seconds=seconds, fps=RENDER_FPS)
+    source = SimulatedCamera(camera, spec, poses, seed=7, lens_name=f"speed_{name}", trajectory=trajectory)
+    start = time.perf_counter()
+    with RecordingWriter(folder, camera_id=source.info.camera_id, kind="sim", image_size=camera.image_size, fps=RENDER_FPS,
+                         controls={}, board=spec.to_dict()) as writer:
+        for frame in source:
+            writer.write(frame)
+    print(f"rendered {folder.name}: {len(poses)} frames in {time.perf_counter() - start:.0f} s")
+    return folder
+
+
+def solve_capture() -> Path:
+    folder = ROOT / "cache" / SOLVE_CAPTURE
+    if not (folder / "session.json").exists():
+        from accuracy import rendered  # only needed when the cache is cold
+
+        folder = rendered("webcam720", "careful", seconds=30, fps=8)
+    return folder
+
+
+# --- timing helpers -------------------------------------------------------------------------------
+def ms_of(call: Callable[[], object]) -> tuple[object, float]:
+    start = time.perf_counter()
+    result = call()
+    return result, (time.perf_counter() - start) * 1e3
+
+
+def timed_each(items: list, call: Callable[[object], object]) -> list[float]:
+    """ms of `call(item)` for each item, after one untimed warm-up call on the first."""
+    call(items[0])
+    return [ms_of(lambda item=item: call(item))[1] for item in items]
+
+
+def median_p90(values: list[float]) -> tuple[float, float]:
+    return float(np.median(values)), float(np.percentile(values, 90))
+
+
+# --- 1. per-frame cost ----------------------------------------------------------------------------
+def bare_detector(spec: BoardSpec) -> cv2.aruco.CharucoDetector:
+    """What a user would write with OpenCV alone."""
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    return cv2.aruco.CharucoDetector(spec.cv_board(), cv2.aruco.CharucoParameters(), params)
+
+
+def session_step_times(frames: list[Frame], detections: list[Detection]) -> tuple[list[float], list[FrameOutcome]]:
+    """ms of `process` per frame as replay drives it (one frame of lookahead); the first is a warm-up."""
+    session = CalibrationSession(BoardSpec(), frames[0].image_size, SessionSettings())
+    times, outcomes = [], []
+    for i, (frame, detection) in enumerate(zip(frames, detections, strict=True)):
+        following = (detections[i + 1], frames[i + 1].timestamp_ns) if i + 1 < len(frames) else None
+        outcome, ms = ms_of(lambda f=frame, d=detection, n=following: session.process(f, d, following=n))
+        times.append(ms)
+        outcomes.append(outcome)
+    return times[1:], outcomes
+
+
+def logging_times(frames: list[Frame], outcomes: list[FrameOutcome]) -> list[float]:
+    """ms of `Viewer.log_frame` per frame, saving to a file only (mode "none"); the first is a warm-up."""
+    with tempfile.TemporaryDirectory() as out:
+        viewer = Viewer.open("none", out_dir=Path(out), application_id="calibcoach_bench")
+        try:
+            times = [ms_of(lambda o=o, f=f: viewer.log_frame(o, f))[1] for o, f in zip(outcomes, frames, strict=True)]
+        finally:
+            viewer.close()
+    return times[1:]
+
+
+def stage_times(folder: Path) -> dict[str, list[float]]:
+    """ms per frame for each stage on the frames of one cached recording."""
+    spec = BoardSpec()
+    pngs = [np.fromfile(p, np.uint8) for p in sorted((folder / "frames").glob("*.png"))]
+    frames = list(open_source(folder))
+    greys = [f.grey() for f in frames]
+    stages = {"decode": timed_each(pngs, lambda b: cv2.imdecode(b, cv2.IMREAD_ANYCOLOR))}
+    bare = bare_detector(spec)
+    cv2.setNumThreads(DEFAULT_THREADS)
+    stages[f"OpenCV detect, {DEFAULT_THREADS} threads"] = timed_each(greys, bare.detectBoard)
+    cv2.setNumThreads(1)  # calibcoach's own setting, kept for the stages below (the session sets it too)
+    stages["OpenCV detect, 1 thread"] = timed_each(greys, bare.detectBoard)
+    detector = CharucoBoardDetector(spec)  # the warm-up frame also settles the print's variant
+    stages["calibcoach detect"] = timed_each(greys, detector.detect)
+    detections = [detector.detect(g) for g in greys]
+    stages["session step"], outcomes = session_step_times(frames, detections)
+    stages["Rerun logging"] = logging_times(frames, outcomes)
+    # per-frame sums over the frames all three were timed on (the session's warm-up frame is out)
+    stages["total (detect+step+log)"] = [c + d + e for c, d, e in zip(
+        stages["calibcoach detect"][1:], stages["session step"], stages["Rerun logging"], strict=True)]
+    stages["board found"] = [float(sum(d.corner_count >= 6 for d in detections)), float(len(detections))]
+    cv2.setNumThreads(DEFAULT_THREADS)
+    return stages
+
+
+def throughput(stages: dict[str, list[float]]) -> tuple[float, float]:
+    """Frames/s on one core, and on CORES cores where detection runs on workers beside the session thread."""
+    one = 1e3 / float(np.median(stages["total (detect+step+log)"]))
+    serial = float(np.median([d + e for d, e in zip(stages["session step"], stages["Rerun logging"], strict=True)]))
+    return one, min(1e3 / serial, CORES * one)  # the serial thread or the cores, whichever binds
+
+
+def per_frame_section() -> tuple[list[str], dict[str, dict[str, list[float]]]]:
+    results = {}
+    for name, camera, count in RESOLUTIONS:
+        results[name] = stage_times(rendered_speed_capture(name, camera, count))
+        print(f"measured {name}")
+    lines = ["| resolution | stage | median ms | p90 ms |", "|---|---|---|---|"]
+    for name, stages in results.items():
+        for stage, ms in stages.items():
+            if stage != "board found":
+                lines.append(f"| {name} | {stage} | {median_p90(ms)[0]:.1f} | {median_p90(ms)[1]:.1f} |")
+    lines += ["", f"| resolution | board found | detect+step+log median ms | 1 core, frames/s | {CORES} cores "
+              f"(replay), frames/s | live keeps {LIVE_FPS:g} fps? |", "|---|---|---|---|---|---|"]
+    for name, stages in results.items():
+        one, many = throughput(stages)
+        found, total = stages["board found"]
+        live = "yes" if one >= LIVE_FPS else f"no: processes ~{one:.0f} of {LIVE_FPS:g} frames/s, drops the rest"
+        lines.append(f"| {name} | {found:.0f} of {total:.0f} | {np.median(stages['total (detect+step+log)']):.1f} "
+                     f"| {one:.1f} | {many:.1f} | {live} |")
+    return lines, results
+
+
+def per_frame_plot(results: dict[str, dict[str, list[float]]]) -> None:
+    names = [s for s in next(iter(results.values())) if s != "board found"]
+    series = {s: [float(np.median(results[r][s])) for r in results] for s in names}
+    img = grouped_bars(list(results), series, title="Per-frame cost by stage", y_label="ms per frame (median)",
+                       subtitle="rendered careful handheld frames; calibcoach stages on 1 OpenCV thread",
+                       size=(1400, 640))
+    save(img, RESULTS / "speed_per_frame.png")
+
+
+# --- 2. solve time --------------------------------------------------------------------------------
+def capture_views(folder: Path) -> tuple[list[View], tuple[int, int]]:
+    """Views of every frame with >= 6 corners, built as the session builds them."""
+    source = open_source(folder)
+    detector = CharucoBoardDetector(BoardSpec.from_dict(dict(source.info.board)))
+    views, size = [], None
+    for frame in source:
+        size = frame.image_size
+        d = detector.detect(frame.grey())
+        if d.corner_count >= 6:
+            views.append(View(frame.index, frame.name, d.ids.copy(), d.corners_px.astype(np.float64),
+                              d.object_points_m.astype(np.float64)))
+    return views, size
+
+
+def solve_ms(views: list[View], size: tuple[int, int], model: str, runs: int = 3) -> float:
+    try:
+        return float(np.median([ms_of(lambda: solve(views, size, model))[1] for _ in range(runs)]))
+    except CalibrationError:
+        return float("nan")
+
+
+def solve_section(folder: Path) -> tuple[list[str], dict[str, tuple[list[float], list[float]]]]:
+    views, size = capture_views(folder)
+    cv2.setNumThreads(1)  # as in a session
+    counts = [n for n in SOLVE_COUNTS if n <= len(views)]
+    # n views spread evenly over the capture, as a session's selection is; the first n would be a
+    # few seconds of near-identical frames
+    picks = {n: [views[i] for i in np.linspace(0, len(views) - 1, n).round().astype(int)] for n in counts}
+    curves = {m: (list(map(float, counts)), [solve_ms(picks[n], size, m) / 1e3 for n in counts]) for m in SOLVE_MODELS}
+    cv2.setNumThreads(DEFAULT_THREADS)
+    lines = [f"{len(views)} frames with >= 6 corners in {folder.name}; `solve()` median of 3, seconds:", "",
+             "| views | " + " | ".join(SOLVE_MODELS) + " |", "|---|" + "---|" * len(SOLVE_MODELS)]
+    for i, n in enumerate(counts):
+        lines.append(f"| {n} | " + " | ".join(f"{curves[m][1][i]:.3f}" for m in SOLVE_MODELS) + " |")
+    return lines, curves
+
+
+def solve_plot(curves: dict[str, tuple[list[float], list[float]]]) -> None:
+    ys = [y for _, v in curves.values() for y in v if np.isfinite(y) and y > 0]
+    img = line_chart(curves, title="Solve time against views", x_label="views", y_label="seconds (median of 3)",
+                     log_y=bool(ys) and max(ys) / min(ys) > 20, subtitle=f"calibcoach solve() on {SOLVE_CAPTURE}")
+    save(img, RESULTS / "solve_time.png")
+
+
+# --- 3. replay ------------------------------------------------------------------------------------
+def replay_section(recording: Path, image_folder: Path | None) -> list[str]:
+    source = open_source(recording)
+    session, stats = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
+    _, finish_ms = ms_of(session.finish)
+    lines = ["| source | frames read | passed over | replay s | frames read/s | finish() s |", "|---|---|---|---|---|---|",
+             f"| recording {recording.name} | {stats.frames_read} | {stats.passed_over} | {stats.seconds:.1f} "
+             f"| {stats.frames_read / stats.seconds:.1f} | {finish_ms / 1e3:.2f} |"]
+    if image_folder is not None:
+        _, folder_stats = run_replay(open_source(image_folder), BoardSpec())
+        covered = (folder_stats.frames_read + folder_stats.passed_over) / folder_stats.seconds
+        lines.append(f"| folder {image_folder.name} | {folder_stats.frames_read} | {folder_stats.passed_over} "
+                     f"| {folder_stats.seconds:.1f} | {folder_stats.frames_read / folder_stats.seconds:.1f} "
+                     f"({covered:.1f} counting the passed over) | - |")
+    if stats.stopped_early:
+        lines.append("\nThe recording's replay met the stop rule early: frames after it were never read.")
+    return lines
+
+
+# --- report ---------------------------------------------------------------------------------------
+def machine_line() -> str:
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor() or "unknown CPU")
+    load = os.getloadavg()[0]
+    return (f"{date.today()}, {len(os.sched_getaffinity(0))} cores (nproc), {cpu}, OpenCV {cv2.__version__} "
+            f"(default {DEFAULT_THREADS} threads); load average {load:.1f} at start: another process may hold a core")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--folder", type=Path, help="an image folder to replay as well (read sparsely)")
+    parser.add_argument("--skip-solve", action="store_true", help="only the per-frame section")
+    args = parser.parse_args()
+    lines = ["# Speed", "", machine_line(), "", "## Per-frame cost", ""]
+    per_frame, results = per_frame_section()
+    per_frame_plot(results)
+    lines += per_frame + ["", NOTES_PER_FRAME, "", "![per frame](speed_per_frame.png)"]
+    if not args.skip_solve:
+        recording = solve_capture()
+        solve_lines, curves = solve_section(recording)
+        solve_plot(curves)
+        lines += ["", "## Solve time", ""] + solve_lines + ["", "![solve time](solve_time.png)"]
+        lines += ["", "## Replay", ""] + replay_section(recording, args.folder)
+    text = "\n".join(lines) + "\n"
+    (RESULTS / "speed.md").write_text(text)
+    print(text)
+    return 0
+
+
+NOTES_PER_FRAME = (
+    "Each frame timed on its own, after one warm-up frame (the session step and logging: their first "
+    "frame is left out). calibcoach detection, the session step and logging run with OpenCV on one thread, "
+    "as calibcoach runs it. 1 core = detect + step + log in series, which is also how the live loop "
+    f"(app/live.py) runs; below {LIVE_FPS:g} fps it drops frames rather than queueing them. {CORES} cores = replay, "
+    "which detects ahead on worker threads while one thread steps the session and logs. Ten frames are too few "
+    "for the session's incremental solves (from 6 accepted views on; see the solve times), which add to the "
+    "step of some frames in a long session. Live recording (PNG encoding) is not included."
+)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,45 @@
+"""Replays log to Rerun on a thread of their own: the saved session is complete, in order, and a
+logger that fails neither hangs the replay nor goes unreported."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import rerun.chunk as rrc
+
+from calibcoach.app.cli import main
+from calibcoach.app.viewer import ViewerError
+from calibcoach.app.viewer_thread import BackgroundViewer
+
+
+def test_calibrate_saves_every_processed_frame_in_order(recordings_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    main(["calibrate", str(recordings_dir / "frontal_webcam720"), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    read = int(err.split("calibcoach: read ")[1].split(" frames")[0])
+    rrd = out / "session.rrd"
+    beside = Path(sys.executable).with_name("rerun")
+    verify = subprocess.run([str(beside), "rrd", "verify", str(rrd)], capture_output=True, text=True)
+    assert verify.returncode == 0, verify.stderr
+    frames: list[int] = []
+    for chunk in rrc.RrdReader(str(rrd)).stream().to_chunks():
+        if chunk.entity_path.lstrip("/") == "camera/image":
+            frames += chunk.to_record_batch().column("frame").to_pylist()
+    assert len(frames) == read == 20
+    assert frames == sorted(frames)
+    assert any(c.entity_path.lstrip("/") == "report/verdict" for c in rrc.RrdReader(str(rrd)).stream().to_chunks())
+
+
+def test_a_logger_that_cannot_open_never_blocks_the_replay_and_is_reported() -> None:
+    def cannot_open():
+        raise ViewerError("cannot write session.rrd: disk full")
+
+    viewer = BackgroundViewer(cannot_open)
+    for _ in range(100):  # more than the queue holds: a dead logger must not make the replay wait for ever
+        viewer.log_result(None, Path("."))  # type: ignore[arg-type]
+    with pytest.raises(ViewerError, match="disk full"):
+        viewer.close()
+    viewer.close()  # idempotent once closed
