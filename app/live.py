@@ -79,8 +79,10 @@ class _NoFrames(FrameSource):
 class FrameGrabber:
     """A capture thread that keeps only the newest frame; the consumer never makes it wait."""
 
-    def __init__(self, source: FrameSource) -> None:
+    def __init__(self, source: FrameSource, on_capture: Callable[[Frame], None] | None = None) -> None:
         self.source = source
+        self.on_capture = on_capture  # called on the capture thread for every frame (the live preview)
+        self.preview_error: BaseException | None = None  # a failing preview stops previews, never capture
         self.dropped = 0  # frames overwritten before the consumer took them
         self.captured = 0
         self.error: BaseException | None = None
@@ -103,6 +105,11 @@ class FrameGrabber:
                     self._latest = frame
                     self.captured += 1
                     self._ready.notify()
+                if self.on_capture is not None and self.preview_error is None:
+                    try:
+                        self.on_capture(frame)
+                    except Exception as exc:  # noqa: BLE001 - the preview is a view, the capture is the data
+                        self.preview_error = exc
                 if self._stop.is_set():
                     break
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which reports it once
@@ -180,6 +187,7 @@ def run_live(
     resume: Path | None = None,
     locked_controls: dict[str, float] | None = None,
     on_outcome: Callable[[FrameOutcome, Frame, LiveStats], None] | None = None,
+    on_capture: Callable[[Frame], None] | None = None,
 ) -> tuple[CalibrationSession | None, LiveStats]:
     """Guide a live capture until the stop rule, the end of the source, Ctrl-C or a lost camera.
 
@@ -226,7 +234,7 @@ def run_live(
             held = (frame, detection)
     if stopped:  # the resumed recording already met the stop rule: nothing left to capture
         source = _NoFrames(info)
-    grabber = FrameGrabber(source).start()
+    grabber = FrameGrabber(source, on_capture).start()
     target = resume if resume is not None else record
     try:
         while True:

@@ -132,11 +132,12 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
 
         def on_outcome(outcome: FrameOutcome, frame: Frame, stats: LiveStats) -> None:
             status(outcome, frame, stats)
-            viewer.log_frame(outcome, frame)
+            viewer.log_frame(outcome, frame, image=False)  # the capture thread logs every image
 
         try:
             session, stats = run_live(source, board, session_settings(args, info, live=True),
-                                      record=args.record, resume=args.resume, locked_controls=locked, on_outcome=on_outcome)
+                                      record=args.record, resume=args.resume, locked_controls=locked, on_outcome=on_outcome,
+                                      on_capture=viewer.log_preview)
         finally:
             status.close()
         return _finish_live(args, argv, info, session, stats, locked, viewer)

@@ -97,6 +97,15 @@ def _wait_for_port(host: str, port: int, process: subprocess.Popen[bytes], timeo
     raise ViewerError(f"the rerun viewer server did not listen on {host}:{port} within {timeout_s:.0f} s")
 
 
+def _preview_factor(width: int) -> int:
+    """Integer shrink factor to at most PREVIEW_MAX_WIDTH (1280 -> 640, 1920 -> 960, 3840 -> 960).
+
+    INTER_AREA over whole pixel blocks costs ~0.3 ms at 720p where a fractional 1280 -> 960 cost
+    ~2.7 ms, which made logging the largest per-frame cost after detection.
+    """
+    return max(1, -(-width // PREVIEW_MAX_WIDTH))
+
+
 def _fate_colour(reason: str) -> tuple[int, int, int]:
     return _FATE_COLOURS.get(reason, _UNUSABLE)
 
@@ -193,27 +202,41 @@ class Viewer:
         self.close()
 
     # --- live ---------------------------------------------------------------------------------
-    def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
+    def log_preview(self, frame: Frame) -> None:
+        """Log a captured frame's image only, on capture_time: the live view at the camera's own rate.
+
+        Called from the capture thread for every frame the camera delivers, so the picture stays
+        fluid while detection handles fewer frames per second (1080p on two cores); the overlays
+        of processed frames follow a frame or two behind. Rerun's time is per thread, so this does
+        not disturb the processing thread's timeline.
+        """
+        self.recording.set_time("capture_time", duration=frame.timestamp_ns * 1e-9)
+        self._log_image(frame)
+
+    def _log_image(self, frame: Frame) -> None:
+        w, h = frame.image_size
+        factor = _preview_factor(w)
+        preview = frame.image if factor == 1 else cv2.resize(frame.image, (w // factor, h // factor),
+                                                             interpolation=cv2.INTER_AREA)
+        ok, jpeg = cv2.imencode(".jpg", preview, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])  # BGR or grey in, as OpenCV has it
+        if ok:
+            self.recording.log(paths.IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+
+    def log_frame(self, outcome: FrameOutcome, frame: Frame, *, image: bool = True) -> None:
         """Log one processed frame: preview image, corners by fate, decision, guidance, progress.
 
-        The image goes out every frame (it is the live view); the coverage boxes and the guidance
-        only when they change, since latest-at queries keep showing the last value. Coverage is
-        read from the session's own map on the outcome, so custom requirements show as they are.
+        The image goes out every frame (it is the live view) unless `image` is False because the
+        capture thread logs previews itself; the coverage boxes and the guidance only when they
+        change, since latest-at queries keep showing the last value. Coverage is read from the
+        session's own map on the outcome, so custom requirements show as they are.
         """
         rec = self.recording
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("capture_time", duration=frame.timestamp_ns * 1e-9)
         w, h = frame.image_size
-        # An integer shrink factor (1280 -> 640, 1920 -> 960, 3840 -> 960): INTER_AREA over whole pixel
-        # blocks costs ~0.3 ms at 720p where a fractional 1280 -> 960 cost ~2.7 ms, which made logging
-        # the largest per-frame cost after detection.
-        factor = max(1, -(-w // PREVIEW_MAX_WIDTH))
-        scale = 1.0 / factor
-        preview = frame.image if factor == 1 else cv2.resize(frame.image, (w // factor, h // factor),
-                                                             interpolation=cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", preview, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])  # BGR or grey in, as OpenCV has it
-        if ok:
-            rec.log(paths.IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+        scale = 1.0 / _preview_factor(w)
+        if image:
+            self._log_image(frame)
 
         decision = outcome.decision
         text = f"frame {frame.index}: {decision.reason}" + (f" ({decision.detail})" if decision.detail else "")

@@ -75,4 +75,7 @@ def session_blueprint() -> rrb.Blueprint:
         column_shares=[1, 2],
         name="Report",
     )
-    return rrb.Blueprint(rrb.Tabs(live, report, active_tab=0), collapse_panels=True)
+    # capture_time is the timeline every camera image is on: live previews are logged from the capture
+    # thread at the camera's rate, before (and whether or not) their frame is processed.
+    return rrb.Blueprint(rrb.Tabs(live, report, active_tab=0), rrb.TimePanel(state="collapsed", timeline="capture_time"),
+                         collapse_panels=True)

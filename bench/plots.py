@@ -30,13 +30,15 @@ from calibcoach.app.outputs.drawing import (
     nice_ticks,
     put_text,
     put_vertical_text,
+    text_width,
 )
 
 # Distinct BGR colours (a tab10-like set), in the order series are given.
 PALETTE = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140),
            (194, 119, 227), (127, 127, 127), (34, 189, 188), (207, 190, 23)]
 HLINE_COLOUR = (60, 60, 210)
-_MARGIN = {"left": 96, "right": 32, "top": TITLE_H + 48, "bottom": 76}  # room for ticks, labels and legend
+_MARGIN = {"left": 96, "right": 32, "bottom": 76}  # room for ticks and labels; the top depends on the legend
+_LEGEND_ROW_H = 26
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,9 +65,29 @@ class _Axes:
         return int(round(self.bottom - (self._y_value(y) - lo) / max(hi - lo, 1e-12) * (self.bottom - self.top)))
 
 
-def _plot_area(img: np.ndarray, x_range, y_range, *, log_y: bool = False) -> _Axes:
+def _plot_area(img: np.ndarray, x_range, y_range, *, legend_rows: int = 1, log_y: bool = False) -> _Axes:
     h, w = img.shape[:2]
-    return _Axes(_MARGIN["left"], _MARGIN["top"], w - _MARGIN["right"], h - _MARGIN["bottom"], x_range, y_range, log_y)
+    top = TITLE_H + 24 + _LEGEND_ROW_H * legend_rows
+    return _Axes(_MARGIN["left"], top, w - _MARGIN["right"], h - _MARGIN["bottom"], x_range, y_range, log_y)
+
+
+def _legend_rows(items: list[tuple[str, tuple[int, int, int], str]], width: int) -> list[list]:
+    """Legend items split into rows that fit `width` (each item takes its label plus ~58 px)."""
+    rows: list[list] = [[]]
+    used = 0
+    for item in items:
+        need = 58 + text_width(item[2], 0.5)
+        if rows[-1] and used + need > width:
+            rows.append([])
+            used = 0
+        rows[-1].append(item)
+        used += need
+    return rows
+
+
+def _draw_legend(img: np.ndarray, rows: list[list]) -> None:
+    for i, row in enumerate(rows):
+        legend(img, _MARGIN["left"], TITLE_H + 24 + _LEGEND_ROW_H * i, row)
 
 
 def log_ticks(vmin: float, vmax: float) -> list[float]:
@@ -119,7 +141,7 @@ def line_chart(
     subtitle: str = "",
     size: tuple[int, int] = (1000, 600),
 ) -> np.ndarray:
-    """One line with dot markers per series {name: (xs, ys)}; NaN points are left out of the line.
+    """One line with dot markers per series {name: (xs, ys)}; the line breaks at NaN points.
 
     `hline` draws a dashed horizontal reference line (a value, or (value, label) for the legend),
     e.g. a target error. `log_y` puts y on a log scale (non-positive values are left out).
@@ -133,18 +155,20 @@ def line_chart(
         ys_all.append(float(ref_value))
     x_range = _padded_range(xs_all, log=False, from_zero=False)
     y_range = _padded_range(ys_all, log=log_y, from_zero=not log_y)
-    axes = _plot_area(img, x_range, y_range, log_y=log_y)
+    colours = _colours(len(series))
+    items = [("line", c, name) for c, name in zip(colours, series, strict=True)]
+    if ref_value is not None:
+        items.append(("dash", HLINE_COLOUR, ref_label))
+    rows = _legend_rows(items, size[0] - _MARGIN["left"] - _MARGIN["right"])
+    axes = _plot_area(img, x_range, y_range, legend_rows=len(rows), log_y=log_y)
     y_ticks = log_ticks(*y_range) if log_y else nice_ticks(*y_range, 6)
     _y_axis(img, axes, y_ticks, y_label)
     _x_axis(img, axes, [(v, fmt(v)) for v in nice_ticks(*x_range, 8)], x_label)
-    items = []
-    for colour, (name, (xs, ys)) in zip(_colours(len(series)), series.items(), strict=True):
+    for colour, (xs, ys) in zip(colours, series.values(), strict=True):
         _draw_line(img, axes, xs, ys, colour)
-        items.append(("line", colour, name))
     if ref_value is not None:
         dashed_hline(img, axes.py(ref_value), axes.left, axes.right, HLINE_COLOUR)
-        items.append(("dash", HLINE_COLOUR, ref_label))
-    legend(img, axes.left, TITLE_H + 24, items)
+    _draw_legend(img, rows)
     return img
 
 
@@ -153,12 +177,18 @@ def _colours(n: int) -> list[tuple[int, int, int]]:
 
 
 def _draw_line(img: np.ndarray, axes: _Axes, xs: Sequence[float], ys: Sequence[float], colour) -> None:
-    points = [(axes.px(x), axes.py(y)) for x, y in zip(xs, ys, strict=True)
-              if math.isfinite(x) and math.isfinite(y) and (y > 0 or not axes.log_y)]
-    if len(points) > 1:
-        cv2.polylines(img, [np.array(points, np.int32)], False, colour, 2, cv2.LINE_AA)
-    for p in points:
-        cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
+    """Dots joined by a line, broken where a point is missing (NaN, or <= 0 on a log axis)."""
+    segments: list[list[tuple[int, int]]] = [[]]
+    for x, y in zip(xs, ys, strict=True):
+        if math.isfinite(x) and math.isfinite(y) and (y > 0 or not axes.log_y):
+            segments[-1].append((axes.px(x), axes.py(y)))
+        elif segments[-1]:
+            segments.append([])
+    for points in segments:
+        if len(points) > 1:
+            cv2.polylines(img, [np.array(points, np.int32)], False, colour, 2, cv2.LINE_AA)
+        for p in points:
+            cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
 
 
 def grouped_bars(
@@ -177,17 +207,19 @@ def grouped_bars(
     """
     img = new_canvas(*size, title, subtitle)
     values = [float(v) for vs in series.values() for v in vs]
-    axes = _plot_area(img, (0.0, float(len(groups))), _padded_range(values, log=False, from_zero=True))
+    colours = _colours(len(series))
+    rows = _legend_rows([("box", c, name) for c, name in zip(colours, series, strict=True)],
+                        size[0] - _MARGIN["left"] - _MARGIN["right"])
+    axes = _plot_area(img, (0.0, float(len(groups))), _padded_range(values, log=False, from_zero=True),
+                      legend_rows=len(rows))
     _y_axis(img, axes, nice_ticks(*axes.y_range, 6), y_label)
     _x_axis(img, axes, [(i + 0.5, g) for i, g in enumerate(groups)], "")
     slot = 0.8 / max(len(series), 1)  # 80% of each group's width holds its bars, the rest separates groups
-    items = []
-    for k, (colour, (name, vs)) in enumerate(zip(_colours(len(series)), series.items(), strict=True)):
+    for k, (colour, vs) in enumerate(zip(colours, series.values(), strict=True)):
         for i, v in enumerate(vs):
             if math.isfinite(v):
                 _draw_bar(img, axes, i + 0.1 + k * slot, slot, float(v), colour, value_labels)
-        items.append(("box", colour, name))
-    legend(img, axes.left, TITLE_H + 24, items)
+    _draw_legend(img, rows)
     return img
 
 

@@ -14,10 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun.chunk as rrc
 
 from calibcoach.app.cli import main
 from calibcoach.app.live import CameraLostError, PacedSource, run_live
 from calibcoach.app.session import SessionSettings
+from calibcoach.app.viewer import Viewer
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
 from calibcoach.drivers.errors import SourceError
@@ -39,9 +41,11 @@ def test_live_recording_replays_to_the_identical_calibration(recordings_dir: Pat
     speed = "1" if source.endswith("frames") else "6"
     code = main(["live", "--source", str(recordings_dir / source), "--out", str(tmp_path / "live"), "--record", str(record),
                  "--no-viewer", "--speed", speed, "--quiet"])
-    assert code == 0
+    # how many frames a live run processes depends on the machine's load, and with them the grade
+    # (0 trusted, 3 insufficient); the replay must reach the same one with the same numbers
+    assert code in (0, 3)
     capsys.readouterr()
-    assert main(["calibrate", str(record), "--out", str(tmp_path / "replay"), "--quiet"]) == 0
+    assert main(["calibrate", str(record), "--out", str(tmp_path / "replay"), "--quiet"]) == code
     np.testing.assert_array_equal(camera_matrix(tmp_path / "live"), camera_matrix(tmp_path / "replay"))
     live = json.loads((tmp_path / "live" / "calibration.json").read_text())
     replay = json.loads((tmp_path / "replay" / "calibration.json").read_text())
@@ -63,6 +67,26 @@ def test_a_slow_consumer_drops_frames_instead_of_queueing_them(recordings_dir: P
     assert stats.frames_processed + stats.frames_dropped == 120
     assert len(read_session(tmp_path / "rec").entries) == stats.frames_processed  # only what was processed
     assert seen == sorted(seen)  # newest frame each time, never out of order
+
+
+def test_the_preview_shows_every_captured_frame_while_processing_drops_some(recordings_dir: Path, tmp_path: Path) -> None:
+    source = PacedSource(open_source(recordings_dir / DEMO), speed=20.0)  # 80 fps offered to a ~25 fps consumer
+    board = BoardSpec.from_dict(dict(source.info.board))
+    viewer = Viewer.open("none", out_dir=tmp_path)
+    try:
+        session, stats = run_live(source, board, SessionSettings(),
+                                  on_outcome=lambda outcome, frame, stats: (viewer.log_frame(outcome, frame, image=False),
+                                                                            time.sleep(0.03)),
+                                  on_capture=viewer.log_preview)
+    finally:
+        viewer.close()
+    assert stats.frames_dropped > 20
+    images: list[int] = []
+    for chunk in rrc.RrdReader(str(tmp_path / "session.rrd")).stream().to_chunks():
+        if chunk.entity_path.lstrip("/") == "camera/image":
+            assert "frame" not in chunk.timeline_names  # previews live on capture_time only
+            images += chunk.to_record_batch().column("capture_time").to_pylist()
+    assert len(images) == 120 == stats.frames_processed + stats.frames_dropped  # every captured frame, dropped or not
 
 
 class DyingCamera(FrameSource):
