@@ -15,6 +15,8 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
+import numpy as np
+
 from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
@@ -74,7 +76,8 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
             if first.settled or item.index >= _SETTLE_FRAMES:
                 break
         detectors = _ThreadDetectors(_settled_spec(first))
-        sparse = SparseScan(source, detectors.detect, start=index, workers=workers)
+        corners_m = np.asarray(detectors.spec.cv_board().getChessboardCorners(), np.float64).reshape(-1, 3)
+        sparse = SparseScan(source, detectors.detect, start=index, workers=workers, board_corners_m=corners_m)
         if scans_out is not None:
             scans_out.append(sparse)
         yield from sparse

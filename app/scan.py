@@ -32,11 +32,21 @@ DEFAULT_STRIDE = 8
 SAME_VIEW_FRAC = 0.03  # largest corner movement between two "same view" frames, share of the image diagonal
 _MIN_CORNERS = 6  # below this a frame shows no usable board; such frames are compared by thumbnail
 _SHARED_CORNERS = 0.5  # detection drops and regains a third of the corners of a still, tilted board from frame to frame
+# ...so the two ends together must hold nearly every corner the board shows inside the image: a
+# frame in between cannot then add corners, only repeat them.
+_UNION_OF_VISIBLE = 0.9
+_STABLE_DETECTION = 0.9  # ...unless the detection is steady: both ends found (nearly) the same corners
+# A held board whose detection flickers is looked at every 4th frame (samples of its corners), and
+# so is footage with no board in sight: a board shown for 4 frames (~0.13 s at 30 fps) is still found.
+_HELD_GAP = 4
 _THUMB_SIZE = (32, 18)  # (width, height): the scene's layout, blind to sensor noise
-_THUMB_SAME_GREY = 2.0  # mean absolute thumbnail difference (grey levels) of an unchanged scene
-# A folder counts as video once this many stride-apart pairs showed the board in the same view:
-# independent stills never do, footage does within its first seconds.
+_THUMB_SAME_GREY = 6.0  # largest thumbnail cell change (grey levels) of an unchanged scene: a board passing
+# through one corner of the image changes a few cells a lot and the mean hardly at all
+# A folder counts as video once this many pairs of looked-at frames showed the board in the same
+# view, or neighbouring frames looked alike: independent stills never do, footage does within its
+# first seconds.
 _VIDEO_AFTER_SAME_VIEWS = 3
+_ADJACENT_SAME_GREY = 1.5  # mean thumbnail change between neighbouring frames of footage (stills change far more)
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,29 +58,62 @@ class Look:
     skipped: SkippedFrame | None
     detection: Detection | None
     thumb: np.ndarray | None  # (18, 32) float32 grey thumbnail
+    visible_corners: int | None = None  # board corners inside the image by the detected corners' homography
+
+
+def visible_corner_count(detection: Detection, board_corners_m: np.ndarray, image_size: tuple[int, int]) -> int | None:
+    """How many of the board's corners lie inside the image, by the homography of the detected ones.
+
+    None when the detection cannot say (too few corners, or a degenerate homography).
+    """
+    if detection.corner_count < _MIN_CORNERS:
+        return None
+    homography, _ = cv2.findHomography(detection.object_points_m[:, :2].astype(np.float64),
+                                       detection.corners_px.astype(np.float64))
+    if homography is None:
+        return None
+    projected = cv2.perspectiveTransform(board_corners_m[None, :, :2].astype(np.float64), homography)[0]
+    w, h = image_size
+    inside = (projected[:, 0] >= 0) & (projected[:, 0] < w) & (projected[:, 1] >= 0) & (projected[:, 1] < h)
+    return int(inside.sum())
+
+
+def compare_views(a: Look, b: Look, image_size: tuple[int, int], *, frac: float = SAME_VIEW_FRAC,
+                  video: bool = False) -> str:
+    """"same" when nothing between `a` and `b` can show a view neither of them shows; "held" when the
+    board is held in the same place but the detection flickers (each frame finds another part of its
+    corners, so frames between may find more); "away" when, in footage (`video`), neither end shows
+    a marker: the board is out of sight or swung too fast to read, and only a brief glimpse could
+    lie between; "different" otherwise.
+    """
+    if a.detection is None or b.detection is None or a.thumb is None or b.thumb is None:
+        return "different"
+    na, nb = a.detection.corner_count, b.detection.corner_count
+    if na < _MIN_CORNERS and nb < _MIN_CORNERS:
+        if float(np.max(np.abs(a.thumb - b.thumb))) <= _THUMB_SAME_GREY:
+            return "same"
+        if video and a.detection.marker_ids.size == 0 and b.detection.marker_ids.size == 0:
+            return "away"
+        return "different"
+    if na < _MIN_CORNERS or nb < _MIN_CORNERS:
+        return "different"  # the board came or went in between
+    shared, ia, ib = np.intersect1d(a.detection.ids, b.detection.ids, assume_unique=True, return_indices=True)
+    if shared.size < _SHARED_CORNERS * max(na, nb):
+        return "different"  # most corners came or went: the board slid over an edge or something covered it
+    moved = np.linalg.norm(a.detection.corners_px[ia] - b.detection.corners_px[ib], axis=1)
+    if float(moved.max()) > frac * float(np.hypot(*image_size)):
+        return "different"
+    union = np.union1d(a.detection.ids, b.detection.ids).size
+    stable = shared.size >= _STABLE_DETECTION * union  # both ends found the same corners: so would the frames between
+    complete = a.visible_corners is not None and b.visible_corners is not None and \
+        union >= _UNION_OF_VISIBLE * max(a.visible_corners, b.visible_corners)
+    return "same" if stable or complete else "held"
 
 
 def same_view(a: Look, b: Look, image_size: tuple[int, int], *, frac: float = SAME_VIEW_FRAC,
               video: bool = False) -> bool:
-    """True when nothing between `a` and `b` can show a view neither of them shows.
-
-    `video`: the sequence has shown itself to be continuous footage, where a board seen sharply at
-    neither end of a fraction of a second was moving (blurred) or away the whole time.
-    """
-    if a.detection is None or b.detection is None or a.thumb is None or b.thumb is None:
-        return False
-    na, nb = a.detection.corner_count, b.detection.corner_count
-    if na < _MIN_CORNERS and nb < _MIN_CORNERS:
-        if video and a.detection.marker_ids.size == 0 and b.detection.marker_ids.size == 0:
-            return True
-        return float(np.mean(np.abs(a.thumb - b.thumb))) <= _THUMB_SAME_GREY
-    if na < _MIN_CORNERS or nb < _MIN_CORNERS:
-        return False  # the board came or went in between
-    shared, ia, ib = np.intersect1d(a.detection.ids, b.detection.ids, assume_unique=True, return_indices=True)
-    if shared.size < _SHARED_CORNERS * max(na, nb):
-        return False  # most corners came or went: the board slid over an edge or something covered it
-    moved = np.linalg.norm(a.detection.corners_px[ia] - b.detection.corners_px[ib], axis=1)
-    return float(moved.max()) <= frac * float(np.hypot(*image_size))
+    """True when nothing between `a` and `b` can show a view neither of them shows."""
+    return compare_views(a, b, image_size, frac=frac, video=video) == "same"
 
 
 class SparseScan:
@@ -81,7 +124,8 @@ class SparseScan:
     """
 
     def __init__(self, source: FrameSource, detect: Callable[[Frame], Detection], *, start: int = 0,
-                 stride: int = DEFAULT_STRIDE, workers: int = 2, lookahead: int = 6) -> None:
+                 stride: int = DEFAULT_STRIDE, workers: int = 2, lookahead: int = 6,
+                 board_corners_m: np.ndarray | None = None) -> None:
         count = source.frame_count_for_random_access
         if count is None:
             raise ValueError(f"{type(source).__name__} has no random access; iterate it instead")
@@ -89,8 +133,9 @@ class SparseScan:
         self._start, self._stride = start, max(1, int(stride))
         self._workers, self._lookahead = max(1, int(workers)), max(2, int(lookahead))
         self._size = source.info.image_size
+        self._board_corners_m = board_corners_m  # (N, 3) every ChArUco corner, by id; None: no completeness check
         self.passed_over = 0
-        self._board_still_pairs = 0  # stride-apart pairs that showed the board in the same view
+        self._continuity = 0  # evidence of footage: pairs showing the board held, neighbours alike
         self._futures: dict[int, Future[Look]] = {}
 
     def _look(self, index: int) -> Look:
@@ -99,7 +144,9 @@ class SparseScan:
             return Look(index, None, item, None, None)
         grey = item.grey()
         thumb = cv2.resize(grey, _THUMB_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
-        return Look(index, item, None, self._detect(item), thumb)
+        detection = self._detect(item)
+        visible = None if self._board_corners_m is None else visible_corner_count(detection, self._board_corners_m, item.image_size)
+        return Look(index, item, None, detection, thumb, visible)
 
     def __iter__(self) -> Iterator[tuple[Frame, Detection]]:
         if self._start >= self._count:
@@ -117,6 +164,7 @@ class SparseScan:
                 for position in range(1, len(keys)):
                     if position + self._lookahead - 1 < len(keys):
                         self._ask(keys[position + self._lookahead - 1])
+                    self._prefetch(keys, position)
                     b = self._get(keys[position])
                     yield from self._between(a, b)
                     yield from self._emit(b)
@@ -126,26 +174,42 @@ class SparseScan:
                     future.cancel()
                 self._futures.clear()
 
+    def _prefetch(self, keys: list[int], position: int) -> None:
+        """Ask for the middles of later key pairs that already look different, so that both workers
+        stay busy while this pair is bisected. Only what is read early changes, never what is yielded:
+        each pair is judged again, in order, when its turn comes."""
+        for j in range(position, min(position + self._lookahead - 1, len(keys) - 1)):
+            low, high = self._futures.get(keys[j]), self._futures.get(keys[j + 1])
+            if low is None or high is None or not (low.done() and high.done()) or keys[j + 1] - keys[j] <= 1:
+                continue
+            if not self._same(low.result(), high.result(), count=False, gap=keys[j + 1] - keys[j]):
+                self._ask((keys[j] + keys[j + 1]) // 2)
+
     def _between(self, a: Look, b: Look) -> Iterator[tuple[Frame, Detection]]:
         if b.index - a.index <= 1:
+            self._same(a, b)  # nothing between them; still evidence whether this is footage
             return
-        if self._same(a, b):
+        if self._same(a, b, gap=b.index - a.index):
             self.passed_over += b.index - a.index - 1
             return
         middle = self._get((a.index + b.index) // 2)
         for low, high in ((a, middle), (middle, b)):  # ask both halves' middles now, so both workers share them
-            if high.index - low.index > 1 and not self._same(low, high, count=False):
+            if high.index - low.index > 1 and not self._same(low, high, count=False, gap=high.index - low.index):
                 self._ask((low.index + high.index) // 2)
         yield from self._between(a, middle)
         yield from self._emit(middle)
         yield from self._between(middle, b)
 
-    def _same(self, a: Look, b: Look, *, count: bool = True) -> bool:
-        video = self._board_still_pairs >= _VIDEO_AFTER_SAME_VIEWS
-        same = same_view(a, b, self._size, video=video)
-        if count and same and b.index - a.index >= self._stride and min(
-                a.detection.corner_count, b.detection.corner_count) >= _MIN_CORNERS:  # type: ignore[union-attr]
-            self._board_still_pairs += 1
+    def _same(self, a: Look, b: Look, *, count: bool = True, gap: int = 0) -> bool:
+        """Whether the frames between a and b can be passed over (gap: how many apart they are;
+        a held board with a flickering detection is still looked at every `_HELD_GAP` frames)."""
+        video = self._continuity >= _VIDEO_AFTER_SAME_VIEWS
+        verdict = compare_views(a, b, self._size, video=video)
+        same = verdict == "same" or (verdict in ("held", "away") and gap <= _HELD_GAP)
+        if count and a.detection is not None and b.detection is not None and a.thumb is not None and b.thumb is not None:
+            board_held = same and min(a.detection.corner_count, b.detection.corner_count) >= _MIN_CORNERS
+            neighbours_alike = b.index - a.index == 1 and float(np.mean(np.abs(a.thumb - b.thumb))) < _ADJACENT_SAME_GREY
+            self._continuity += int(board_held or neighbours_alike)
         return same
 
     def _emit(self, look: Look) -> Iterator[tuple[Frame, Detection]]:
