@@ -4,9 +4,11 @@ The plain loop is what a user would write with OpenCV alone: imread + detectBoar
 then one calibrateCamera over every frame with >= 6 corners. Both run in this process, one after
 the other, on the same files (the page cache is warmed first, so neither pays for the disk).
 
-    .venv/bin/python bench/replay_speed.py FOLDER [--runs 3]
+    .venv/bin/python bench/replay_speed.py [FOLDER] [--runs 3] [--style careful|sloppy]
 
-Prints one line per method and the ratio calibcoach / plain (the target is <= 0.5).
+Without FOLDER, a 784-frame 720p handheld capture at 30 fps is rendered once into bench/cache/
+(~5 min). Prints one line per method, how many frames calibcoach read and passed over, and the
+ratio calibcoach / plain (the target is <= 0.5).
 """
 
 from __future__ import annotations
@@ -45,27 +47,38 @@ def plain_loop(files: list[Path], spec: BoardSpec) -> tuple[float, int]:
     return time.perf_counter() - start, len(obj)
 
 
-def calibcoach_run(folder: Path) -> float:
+def calibcoach_run(folder: Path) -> tuple[float, str]:
+    """Seconds for the whole command, and its line saying how many frames it read."""
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "calibcoach.app", "calibrate", str(folder), "--out", out, "--quiet"],
-                       check=False, capture_output=True)
-        return time.perf_counter() - start
+        done = subprocess.run([sys.executable, "-m", "calibcoach.app", "calibrate", str(folder), "--out", out, "--quiet"],
+                              check=False, capture_output=True, text=True)
+        seconds = time.perf_counter() - start
+    said = next((line for line in done.stderr.splitlines() if line.startswith("calibcoach: read ")), done.stderr[-300:])
+    return seconds, said
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", type=Path)
+    parser.add_argument("folder", type=Path, nargs="?", help="a folder of images (default: render one)")
     parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--style", default="careful", choices=("careful", "sloppy", "frontal"),
+                        help="handheld style of the rendered capture")
     args = parser.parse_args()
+    if args.folder is None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from accuracy import rendered  # bench/accuracy.py renders and caches captures
+
+        args.folder = rendered("webcam720", args.style, seconds=784 / 30, fps=30.0) / "frames"
     files = sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     for f in files:  # warm the page cache for both
         f.read_bytes()
     plain = [plain_loop(files, BoardSpec()) for _ in range(args.runs)]
     ours = [calibcoach_run(args.folder) for _ in range(args.runs)]
-    p, o = float(np.median([t for t, _ in plain])), float(np.median(ours))
+    p, o = float(np.median([t for t, _ in plain])), float(np.median([t for t, _ in ours]))
     print(f"plain loop (imread + detectBoard x {len(files)} + calibrateCamera on {plain[0][1]}): {p:.2f} s")
     print(f"calibcoach calibrate (whole command, start-up included):          {o:.2f} s")
+    print(f"  {ours[0][1]}")
     print(f"ratio calibcoach / plain: {o / p:.2f}")
     return 0
 

@@ -2,8 +2,8 @@
 
 1. Per frame at 720p, 1080p and 4K, on a few rendered frames of a careful handheld capture:
    PNG decode, bare OpenCV `detectBoard` (default threads and one thread), calibcoach detection,
-   the session step and Rerun logging (to a file only), each frame timed on its own after a
-   warm-up frame; median and p90.
+   the session step and Rerun logging (to a file only, as replay and as live log), each frame
+   timed on its own after a warm-up frame; median and p90, and the frame rates they allow.
 2. `solve()` time against the number of views for the pinhole, rational and fisheye models, on the
    detections of the cached careful 720p capture, and `finish()` after a whole replay of it.
 3. Replay throughput (frames/s) of that recording, and of an image folder given with --folder.
@@ -60,6 +60,10 @@ SOLVE_CAPTURE = "webcam720_careful_30s_8fps"
 SOLVE_COUNTS = (10, 20, 40, 60, 100)
 SOLVE_MODELS = ("pinhole", "rational", "fisheye")
 LIVE_FPS = 30.0
+LOG = "Rerun log_frame"
+LOG_LIVE = "Rerun log_frame, no image (live)"
+TOTAL = "total (detect+step+log_frame)"
+PLOT_LEFT_OUT = ("Rerun live preview (capture thread)", LOG_LIVE)  # in the table; the chart stays readable
 ROUNDS = 3  # per-frame timings are repeated and the fastest kept: the machine may be shared
 
 
@@ -129,15 +133,26 @@ def session_step_times(frames: list[Frame], detections: list[Detection]) -> tupl
     return times[1:], outcomes
 
 
-def logging_times(frames: list[Frame], outcomes: list[FrameOutcome]) -> list[float]:
-    """ms of `Viewer.log_frame` per frame, saving to a file only (mode "none"); the first is a warm-up."""
+def logging_times(frames: list[Frame], outcomes: list[FrameOutcome]) -> dict[str, list[float]]:
+    """ms per frame of Rerun logging, saving to a file only (mode "none"); the first frame is a warm-up.
+
+    Replay logs whole frames (`log_frame`); live logs the image on the capture thread (`log_preview`)
+    and the overlays on the processing thread (`log_frame(image=False)`), so both ways are timed.
+    """
+    pairs = list(zip(outcomes, frames, strict=True))
     with tempfile.TemporaryDirectory() as out:
-        viewer = Viewer.open("none", out_dir=Path(out), application_id="calibcoach_bench")
+        replay_viewer = Viewer.open("none", out_dir=Path(out) / "replay", application_id="calibcoach_bench")
+        live_viewer = Viewer.open("none", out_dir=Path(out) / "live", application_id="calibcoach_bench")
         try:
-            times = [ms_of(lambda o=o, f=f: viewer.log_frame(o, f))[1] for o, f in zip(outcomes, frames, strict=True)]
+            times = {
+                LOG: [ms_of(lambda o=o, f=f: replay_viewer.log_frame(o, f))[1] for o, f in pairs],
+                "Rerun live preview (capture thread)": [ms_of(lambda f=f: live_viewer.log_preview(f))[1] for f in frames],
+                LOG_LIVE: [ms_of(lambda o=o, f=f: live_viewer.log_frame(o, f, image=False))[1] for o, f in pairs],
+            }
         finally:
-            viewer.close()
-    return times[1:]
+            replay_viewer.close()
+            live_viewer.close()
+    return {k: v[1:] for k, v in times.items()}
 
 
 def stage_times_once(folder: Path) -> tuple[dict[str, list[float]], int]:
@@ -156,7 +171,7 @@ def stage_times_once(folder: Path) -> tuple[dict[str, list[float]], int]:
     stages["calibcoach detect"] = timed_each(greys, detector.detect)[1:]  # aligned with the two below
     detections = [detector.detect(g) for g in greys]
     stages["session step"], outcomes = session_step_times(frames, detections)
-    stages["Rerun logging"] = logging_times(frames, outcomes)
+    stages.update(logging_times(frames, outcomes))
     cv2.setNumThreads(DEFAULT_THREADS)
     return stages, sum(d.corner_count >= 6 for d in detections)
 
@@ -165,16 +180,24 @@ def stage_times(folder: Path) -> tuple[dict[str, list[float]], int]:
     """Per frame and stage, the fastest of ROUNDS rounds: the cost without another process's interference."""
     rounds = [stage_times_once(folder) for _ in range(ROUNDS)]
     stages = {k: np.min([r[0][k] for r in rounds], axis=0).tolist() for k in rounds[0][0]}
-    stages["total (detect+step+log)"] = [c + d + e for c, d, e in zip(
-        stages["calibcoach detect"], stages["session step"], stages["Rerun logging"], strict=True)]
+    stages[TOTAL] = [c + d + e for c, d, e in zip(
+        stages["calibcoach detect"], stages["session step"], stages[LOG], strict=True)]
     return stages, rounds[0][1]
 
 
-def throughput(stages: dict[str, list[float]]) -> tuple[float, float]:
-    """Frames/s on one core, and on CORES cores where detection runs on workers beside the session thread."""
-    one = 1e3 / float(np.median(stages["total (detect+step+log)"]))
-    serial = float(np.median([d + e for d, e in zip(stages["session step"], stages["Rerun logging"], strict=True)]))
-    return one, min(1e3 / serial, CORES * one)  # the serial thread or the cores, whichever binds
+def throughput(stages: dict[str, list[float]]) -> tuple[float, float, float]:
+    """Frames/s: all on one core; replay on CORES cores; the live processing thread.
+
+    Replay detects on worker threads while one thread steps the session and another logs, so the
+    slower of those two threads or the cores' total work binds. Live detects, steps and logs the
+    overlays on one thread (the capture thread logs the image beside it).
+    """
+    median = {k: float(np.median(v)) for k, v in stages.items()}
+    one = 1e3 / median[TOTAL]
+    replay = min(1e3 / median["session step"], 1e3 / median[LOG], CORES * one)
+    live = 1e3 / float(np.median([c + d + e for c, d, e in zip(
+        stages["calibcoach detect"], stages["session step"], stages[LOG_LIVE], strict=True)]))
+    return one, replay, live
 
 
 def per_frame_section() -> tuple[list[str], dict[str, dict[str, list[float]]]]:
@@ -186,18 +209,27 @@ def per_frame_section() -> tuple[list[str], dict[str, dict[str, list[float]]]]:
     for name, stages in results.items():
         for stage, ms in stages.items():
             lines.append(f"| {name} | {stage} | {median_p90(ms)[0]:.1f} | {median_p90(ms)[1]:.1f} |")
-    lines += ["", f"| resolution | board found | detect+step+log median ms | 1 core, frames/s | {CORES} cores "
-              f"(replay), frames/s | live keeps {LIVE_FPS:g} fps? |", "|---|---|---|---|---|---|"]
+    lines += ["", f"| resolution | board found | detect+step+log_frame median ms | 1 core, frames/s | {CORES} cores "
+              f"(replay), frames/s | live processing thread, frames/s | live keeps {LIVE_FPS:g} fps? |",
+              "|---|---|---|---|---|---|---|"]
     for (name, stages), (_, _, count) in zip(results.items(), RESOLUTIONS, strict=True):
-        one, many = throughput(stages)
-        live = "yes" if one >= LIVE_FPS else f"no: processes ~{one:.0f} of {LIVE_FPS:g} frames/s, drops the rest"
-        lines.append(f"| {name} | {found[name]} of {count} | {np.median(stages['total (detect+step+log)']):.1f} "
-                     f"| {one:.1f} | {many:.1f} | {live} |")
+        one, replay, live = throughput(stages)
+        lines.append(f"| {name} | {found[name]} of {count} | {np.median(stages[TOTAL]):.1f} "
+                     f"| {one:.1f} | {replay:.1f} | {live:.1f} | {live_verdict(live)} |")
     return lines, results
 
 
+def live_verdict(fps: float) -> str:
+    # timings on a shared machine move by ~10%, so a rate that close to the target is called borderline
+    if fps >= 1.1 * LIVE_FPS:
+        return "yes"
+    if fps >= 0.9 * LIVE_FPS:
+        return "borderline"
+    return f"no: ~{fps:.0f} of {LIVE_FPS:g} frames/s processed, the rest dropped"
+
+
 def per_frame_plot(results: dict[str, dict[str, list[float]]]) -> None:
-    names = list(next(iter(results.values())))
+    names = [s for s in next(iter(results.values())) if s not in PLOT_LEFT_OUT]
     series = {s: [float(np.median(results[r][s])) for r in results] for s in names}
     img = grouped_bars(list(results), series, title="Per-frame cost by stage", y_label="ms per frame (median)",
                        subtitle="rendered careful handheld frames; calibcoach stages on 1 OpenCV thread",
@@ -266,6 +298,8 @@ def replay_section(recording: Path, image_folder: Path | None) -> list[str]:
         lines.append(f"| folder {image_folder.parent.name}/{image_folder.name} | {folder_stats.frames_read} | {folder_stats.passed_over} "
                      f"| {folder_stats.seconds:.1f} | {folder_stats.frames_read / folder_stats.seconds:.1f} "
                      f"({covered:.1f} counting the passed over) | - |")
+    lines.append("\n`run_replay` with default settings and no viewer attached (saving session.rrd adds a logging "
+                 "thread; see Rerun log_frame above). The recording is read in full; the folder sparsely.")
     if stats.stopped_early:
         lines.append("\nThe recording's replay met the stop rule early: frames after it were never read.")
     return lines
@@ -304,12 +338,15 @@ def main() -> int:
 NOTES_PER_FRAME = (
     "Each frame timed on its own, after one warm-up frame (the session step and logging: their first frame "
     f"is left out); each frame's time is the fastest of {ROUNDS} rounds. calibcoach detection, the session "
-    "step and logging run with OpenCV on one thread, as calibcoach runs it. 1 core = detect + step + log in "
-    f"series, which is also how the live loop (app/live.py) runs; below {LIVE_FPS:g} fps it drops frames rather "
-    f"than queueing them. {CORES} cores = replay, which detects ahead on worker threads while one thread steps "
-    "the session and logs. Ten frames are too few for the session's incremental solves (from 6 accepted views "
-    "on; see the solve times), which add to the step of some frames in a long session. Live recording (PNG "
-    "encoding) is not included."
+    "step and logging run with OpenCV on one thread, as calibcoach runs it. Logging saves session.rrd only "
+    "(viewer mode none). 1 core = detect + step + log_frame in series. "
+    f"{CORES} cores = replay: detection on worker threads, the session step on one thread and logging on "
+    "another (app/viewer_thread.py), so the slowest of those or the total work over the cores binds. "
+    "Live (app/live.py): one thread detects, steps and logs the overlays (log_frame without the image) while "
+    "the capture thread logs every camera frame's preview image; when the processing thread is slower than "
+    f"the camera it drops frames rather than queueing them. Ten frames are too few for the session's "
+    "incremental solves (from 6 accepted views on; see the solve times), which add to the step of some frames "
+    "in a long session. Live recording (PNG encoding) is not included."
 )
 
 
