@@ -127,42 +127,61 @@ def run_replay(
 ) -> tuple[CalibrationSession, ReplayStats]:
     """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
 
-    Image folders are read sparsely (see app/scan.py) unless `every_frame`; other sources in full.
+    Image folders are read sparsely (see app/scan.py) unless `every_frame`; when the sparse pass
+    leaves the selector short of choice (few usable frames: a hurried capture), the frames passed
+    over next to a usable board are read too, in a second pass.
     """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
     settle = CharucoBoardDetector(board)
-    session: CalibrationSession | None = None
+    feed = _Feeder(settle, settings, on_outcome)
     start = time.perf_counter()
-    read = 0
-    stopped = interrupted = False
     scans: list[SparseScan] = []
     stream = detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
-    held: tuple[Frame, Detection] | None = None  # one frame of lookahead for the two-sided stillness test
-    try:
-        for item in _with_end(stream):
-            if item is not None:
-                read += 1
-            if held is not None:
-                frame, detection = held
-                if session is None:
-                    session = CalibrationSession(settle.spec, frame.image_size, settings)
-                following = None if item is None else (item[1], item[0].timestamp_ns)
-                outcome = session.process(frame, detection, following=following)
-                if on_outcome is not None:
-                    on_outcome(outcome, frame)
-                if session.done:
-                    stopped = True
-                    break
-            held = item
-    except KeyboardInterrupt:
-        interrupted = True  # stop reading; what was accepted is solved as usual
-    finally:
-        stream.close()
+    feed.run(stream)
+    session = feed.session
+    if session is not None and scans and not (feed.stopped or feed.interrupted) and session.short_of_choice():
+        feed.run(scans[0].fill_in())
     if session is None:
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
     passed_over = sum(scan.passed_over for scan in scans)
-    return session, ReplayStats(read, time.perf_counter() - start, stopped, interrupted, settle.spec, settle.variant_found,
-                                passed_over)
+    return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
+                                settle.variant_found, passed_over)
+
+
+class _Feeder:
+    """Feeds (frame, detection) streams to one session, one frame behind (the two-sided stillness test)."""
+
+    def __init__(self, settle: CharucoBoardDetector, settings: SessionSettings,
+                 on_outcome: Callable[[FrameOutcome, Frame], None] | None) -> None:
+        self.settle, self.settings, self.on_outcome = settle, settings, on_outcome
+        self.session: CalibrationSession | None = None
+        self.read = 0
+        self.stopped = self.interrupted = False
+
+    def run(self, stream: Iterator[tuple[Frame, Detection]]) -> None:
+        held: tuple[Frame, Detection] | None = None
+        try:
+            for item in _with_end(stream):
+                if item is not None:
+                    self.read += 1
+                if held is not None:
+                    frame, detection = held
+                    if self.session is None:
+                        self.session = CalibrationSession(self.settle.spec, frame.image_size, self.settings)
+                    following = None if item is None else (item[1], item[0].timestamp_ns)
+                    outcome = self.session.process(frame, detection, following=following)
+                    if self.on_outcome is not None:
+                        self.on_outcome(outcome, frame)
+                    if self.session.done:
+                        self.stopped = True
+                        break
+                held = item
+        except KeyboardInterrupt:
+            self.interrupted = True  # stop reading; what was accepted is solved as usual
+        finally:
+            close = getattr(stream, "close", None)
+            if close is not None:
+                close()

@@ -18,6 +18,7 @@ detections alone, never on timing, so a replay is reproducible whatever the mach
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ _STABLE_DETECTION = 0.9  # ...unless the detection is steady: both ends found (n
 # A held board whose detection flickers is looked at every 4th frame (samples of its corners), and
 # so is footage with no board in sight: a board shown for 4 frames (~0.13 s at 30 fps) is still found.
 _HELD_GAP = 4
+_FILL_NEAR = 4  # the second pass of a hurried capture reads what was passed over this close to a usable board
 _THUMB_SIZE = (32, 18)  # (width, height): the scene's layout, blind to sensor noise
 _THUMB_SAME_GREY = 6.0  # largest thumbnail cell change (grey levels) of an unchanged scene: a board passing
 # through one corner of the image changes a few cells a lot and the mean hardly at all
@@ -135,6 +137,8 @@ class SparseScan:
         self._size = source.info.image_size
         self._board_corners_m = board_corners_m  # (N, 3) every ChArUco corner, by id; None: no completeness check
         self.passed_over = 0
+        self._passed: list[tuple[int, int]] = []  # (a, b): the frames strictly between were passed over
+        self._usable: list[int] = []  # frames read that showed a usable board
         self._continuity = 0  # evidence of footage: pairs showing the board held, neighbours alike
         self._futures: dict[int, Future[Look]] = {}
 
@@ -191,6 +195,7 @@ class SparseScan:
             return
         if self._same(a, b, gap=b.index - a.index):
             self.passed_over += b.index - a.index - 1
+            self._passed.append((a.index, b.index))
             return
         middle = self._get((a.index + b.index) // 2)
         for low, high in ((a, middle), (middle, b)):  # ask both halves' middles now, so both workers share them
@@ -218,7 +223,38 @@ class SparseScan:
             self._source.skipped.append(look.skipped)
             return
         assert look.detection is not None
+        if look.detection.corner_count >= _MIN_CORNERS:
+            self._usable.append(look.index)
         yield look.frame, look.detection
+
+    def fill_in(self, *, near: int = _FILL_NEAR) -> Iterator[tuple[Frame, Detection]]:
+        """The frames passed over within `near` frames of a usable board, in index order.
+
+        For a hurried capture, where the selector is short of frames to choose from: a board seen
+        briefly or moving is where the frames that were passed over still differ a little.
+        """
+        usable = np.array(sorted(self._usable))
+        wanted = []
+        if usable.size:
+            for low, high in self._passed:
+                for index in range(low + 1, high):
+                    at = int(np.searchsorted(usable, index))
+                    nearest = min(abs(int(usable[k]) - index) for k in (at - 1, at) if 0 <= k < usable.size)
+                    if nearest <= near:
+                        wanted.append(index)
+        self.passed_over -= len(wanted)
+        with ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="scan") as pool:
+            pending: deque[Future[Look]] = deque()
+            try:
+                for index in wanted:
+                    pending.append(pool.submit(self._look, index))
+                    if len(pending) >= 2 * self._workers + 2:
+                        yield from self._emit(pending.popleft().result())
+                while pending:
+                    yield from self._emit(pending.popleft().result())
+            finally:
+                for future in pending:
+                    future.cancel()
 
     def _ask(self, index: int) -> None:
         if index not in self._futures:

@@ -52,6 +52,7 @@ MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
 FULL_MODEL_VIEWS = 12  # below this the incremental solve uses the reduced bootstrap model
 MIN_VIEWS_TO_STOP = 15  # never stop on fewer frames, however good they look
 _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
+_CHOICE_PER_BUDGET_FRAME = 1.5  # usable frames per budget frame below which a replay reads more
 _MIN_FILL_GAIN = 0.002  # a reserve frame must cut the mean pixel variance by 0.2% to be worth solving with
 
 
@@ -145,6 +146,14 @@ class CalibrationSession:
     @property
     def done(self) -> bool:
         return self._done
+
+    def short_of_choice(self) -> bool:
+        """Too few usable frames for the final solve to choose its budget from (a hurried capture).
+
+        The final solve takes the accepted frames and fills the budget from the reserve by
+        information; with fewer than 1.5x the budget to choose from, any more usable frame helps.
+        """
+        return len(self.views) + len(self._reserve) < _CHOICE_PER_BUDGET_FRAME * self.settings.selector.max_frames
 
     def process(self, frame: Frame, detection: Detection, *, following: tuple[Detection, int] | None = None) -> FrameOutcome:
         """Decide about one frame (already detected) and update coverage and the incremental solve.

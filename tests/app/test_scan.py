@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from calibcoach.app.replay import run_replay
+from calibcoach.app.session import SessionSettings
 from calibcoach.app.scan import Look, SparseScan, compare_views, same_view
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.replay import ImageFolderSource
 
@@ -97,12 +99,23 @@ def test_same_view_rules() -> None:
 
 def test_replay_of_a_held_folder_passes_over_the_repeats_unless_every_frame(recordings_dir: Path, tmp_path: Path) -> None:
     folder = _held_views(recordings_dir, tmp_path, [0, 30, 66, 114], hold=12)
-    sparse, stats = run_replay(ImageFolderSource(folder), BoardSpec())
-    dense, dense_stats = run_replay(ImageFolderSource(folder), BoardSpec(), every_frame=True)
+    # a budget of 4 frames: 4 views and their repeats are plenty to choose from, so no second pass
+    settings = SessionSettings(selector=SelectorSettings(max_frames=4))
+    sparse, stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
+    dense, dense_stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings, every_frame=True)
     assert stats.passed_over >= 12 and stats.frames_read + stats.passed_over == 48
     assert dense_stats.passed_over == 0 and dense_stats.frames_read == 48
-    # all four views are kept either way: what was passed over only repeated them
-    assert {v.frame_index // 12 for v in sparse.views} == {v.frame_index // 12 for v in dense.views} == {0, 1, 2, 3}
+    # the same views are kept either way: what was passed over only repeated them
+    assert {v.frame_index // 12 for v in sparse.views} == {v.frame_index // 12 for v in dense.views}
+
+
+def test_a_capture_short_of_usable_frames_gets_a_second_pass_near_the_boards(recordings_dir: Path, tmp_path: Path) -> None:
+    # 48 frames can never give the default 60-frame budget 1.5x its size to choose from: the frames
+    # passed over within 4 of a usable board are read after all (here: every one of them)
+    folder = _held_views(recordings_dir, tmp_path, [0, 30, 66, 114], hold=12)
+    session, stats = run_replay(ImageFolderSource(folder), BoardSpec())
+    assert session.short_of_choice()
+    assert stats.passed_over == 0 and stats.frames_read == 48
 
 
 @pytest.mark.parametrize("stride", [1, 3])
@@ -119,8 +132,8 @@ def test_what_is_read_does_not_depend_on_the_number_of_workers(recordings_dir: P
     runs = []
     for workers in (1, 2, 2):
         read: list[int] = []
-        session, stats = run_replay(ImageFolderSource(folder), BoardSpec(), workers=workers,
-                                    on_outcome=lambda outcome, frame, read=read: read.append(frame.index))
+        session, stats = run_replay(ImageFolderSource(folder), BoardSpec(), SessionSettings(selector=SelectorSettings(max_frames=4)),
+                                    workers=workers, on_outcome=lambda outcome, frame, read=read: read.append(frame.index))
         runs.append((read, [v.frame_index for v in session.views], stats.passed_over))
     assert runs[0] == runs[1] == runs[2]
     assert runs[0][2] > 0
