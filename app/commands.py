@@ -171,6 +171,9 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
     if not verdict.trusted:
         if not args.accept_partial:
             print("camera_matrix.npy/dist_coeffs.npy were NOT written (pass --accept-partial to write them anyway)")
+        if stats.passed_over:
+            print(f"the folder was read sparsely ({stats.passed_over} frames passed over as repeats of their neighbours); "
+                  "a hurried capture may hold a few more usable frames: try again with --every-frame")
         return 3
     return 0
 

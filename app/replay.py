@@ -127,9 +127,9 @@ def run_replay(
 ) -> tuple[CalibrationSession, ReplayStats]:
     """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
 
-    Image folders are read sparsely (see app/scan.py) unless `every_frame`; when the sparse pass
-    leaves the selector short of choice (few usable frames: a hurried capture), the frames passed
-    over next to a usable board are read too, in a second pass.
+    Image folders are read sparsely (see app/scan.py) unless `every_frame`. When the capture was
+    hurried (few usable frames, even counting the repeats of held boards that were passed over),
+    the frames passed over next to a usable board are read too, in a second pass.
     """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
@@ -140,7 +140,8 @@ def run_replay(
     stream = detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
     feed.run(stream)
     session = feed.session
-    if session is not None and scans and not (feed.stopped or feed.interrupted) and session.short_of_choice():
+    if session is not None and scans and not (feed.stopped or feed.interrupted) and \
+            session.short_of_choice(unread_repeats=scans[0].held_repeats):
         feed.run(scans[0].fill_in())
     if session is None:
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
@@ -161,7 +162,8 @@ class _Feeder:
         self.read = 0
         self.stopped = self.interrupted = False
 
-    def run(self, stream: Iterator[tuple[Frame, Detection]]) -> None:
+    def run(self, stream: Iterator[tuple[Frame, Detection]], *, enough: Callable[[], bool] | None = None) -> None:
+        """Feed `stream` until it ends, the stop rule is met, or `enough()` says so."""
         held: tuple[Frame, Detection] | None = None
         try:
             for item in _with_end(stream):
@@ -177,6 +179,8 @@ class _Feeder:
                         self.on_outcome(outcome, frame)
                     if self.session.done:
                         self.stopped = True
+                        break
+                    if enough is not None and enough():
                         break
                 held = item
         except KeyboardInterrupt:

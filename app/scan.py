@@ -37,9 +37,10 @@ _SHARED_CORNERS = 0.5  # detection drops and regains a third of the corners of a
 # frame in between cannot then add corners, only repeat them.
 _UNION_OF_VISIBLE = 0.9
 _STABLE_DETECTION = 0.9  # ...unless the detection is steady: both ends found (nearly) the same corners
-# A held board whose detection flickers is looked at every 4th frame (samples of its corners), and
-# so is footage with no board in sight: a board shown for 4 frames (~0.13 s at 30 fps) is still found.
-_HELD_GAP = 4
+# A held board whose detection flickers is looked at every 8th frame (samples of its corners), and
+# footage with no board in sight every 4th: a board shown for 4 frames (~0.13 s at 30 fps) is found.
+_HELD_GAP = 8
+_AWAY_GAP = 4
 _FILL_NEAR = 4  # the second pass of a hurried capture reads what was passed over this close to a usable board
 _THUMB_SIZE = (32, 18)  # (width, height): the scene's layout, blind to sensor noise
 _THUMB_SAME_GREY = 6.0  # largest thumbnail cell change (grey levels) of an unchanged scene: a board passing
@@ -137,6 +138,7 @@ class SparseScan:
         self._size = source.info.image_size
         self._board_corners_m = board_corners_m  # (N, 3) every ChArUco corner, by id; None: no completeness check
         self.passed_over = 0
+        self.held_repeats = 0  # frames passed over between two looks at a usable, held board
         self._passed: list[tuple[int, int]] = []  # (a, b): the frames strictly between were passed over
         self._usable: list[int] = []  # frames read that showed a usable board
         self._continuity = 0  # evidence of footage: pairs showing the board held, neighbours alike
@@ -196,6 +198,8 @@ class SparseScan:
         if self._same(a, b, gap=b.index - a.index):
             self.passed_over += b.index - a.index - 1
             self._passed.append((a.index, b.index))
+            if min(a.detection.corner_count, b.detection.corner_count) >= _MIN_CORNERS:  # type: ignore[union-attr]
+                self.held_repeats += b.index - a.index - 1
             return
         middle = self._get((a.index + b.index) // 2)
         for low, high in ((a, middle), (middle, b)):  # ask both halves' middles now, so both workers share them
@@ -207,10 +211,11 @@ class SparseScan:
 
     def _same(self, a: Look, b: Look, *, count: bool = True, gap: int = 0) -> bool:
         """Whether the frames between a and b can be passed over (gap: how many apart they are;
-        a held board with a flickering detection is still looked at every `_HELD_GAP` frames)."""
+        a held board with a flickering detection is looked at every `_HELD_GAP` frames, footage
+        without a board every `_AWAY_GAP`)."""
         video = self._continuity >= _VIDEO_AFTER_SAME_VIEWS
         verdict = compare_views(a, b, self._size, video=video)
-        same = verdict == "same" or (verdict in ("held", "away") and gap <= _HELD_GAP)
+        same = verdict == "same" or (verdict == "held" and gap <= _HELD_GAP) or (verdict == "away" and gap <= _AWAY_GAP)
         if count and a.detection is not None and b.detection is not None and a.thumb is not None and b.thumb is not None:
             board_held = same and min(a.detection.corner_count, b.detection.corner_count) >= _MIN_CORNERS
             neighbours_alike = b.index - a.index == 1 and float(np.mean(np.abs(a.thumb - b.thumb))) < _ADJACENT_SAME_GREY
@@ -228,29 +233,32 @@ class SparseScan:
         yield look.frame, look.detection
 
     def fill_in(self, *, near: int = _FILL_NEAR) -> Iterator[tuple[Frame, Detection]]:
-        """The frames passed over within `near` frames of a usable board, in index order.
+        """The frames passed over within `near` frames of a usable board: the nearest first
+        (distance 1 everywhere, then 2, ...), each distance in index order; stop whenever enough.
 
         For a hurried capture, where the selector is short of frames to choose from: a board seen
         briefly or moving is where the frames that were passed over still differ a little.
         """
         usable = np.array(sorted(self._usable))
-        wanted = []
+        by_distance: list[tuple[int, int]] = []
         if usable.size:
             for low, high in self._passed:
                 for index in range(low + 1, high):
                     at = int(np.searchsorted(usable, index))
                     nearest = min(abs(int(usable[k]) - index) for k in (at - 1, at) if 0 <= k < usable.size)
                     if nearest <= near:
-                        wanted.append(index)
-        self.passed_over -= len(wanted)
+                        by_distance.append((nearest, index))
+        wanted = [index for _, index in sorted(by_distance)]
         with ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="scan") as pool:
             pending: deque[Future[Look]] = deque()
             try:
                 for index in wanted:
                     pending.append(pool.submit(self._look, index))
                     if len(pending) >= 2 * self._workers + 2:
+                        self.passed_over -= 1
                         yield from self._emit(pending.popleft().result())
                 while pending:
+                    self.passed_over -= 1
                     yield from self._emit(pending.popleft().result())
             finally:
                 for future in pending:

@@ -147,13 +147,16 @@ class CalibrationSession:
     def done(self) -> bool:
         return self._done
 
-    def short_of_choice(self) -> bool:
+    def short_of_choice(self, unread_repeats: int = 0) -> bool:
         """Too few usable frames for the final solve to choose its budget from (a hurried capture).
 
         The final solve takes the accepted frames and fills the budget from the reserve by
         information; with fewer than 1.5x the budget to choose from, any more usable frame helps.
+        `unread_repeats`: usable frames a sparse replay passed over as repeats of a held board,
+        which count as choice the capture offered.
         """
-        return len(self.views) + len(self._reserve) < _CHOICE_PER_BUDGET_FRAME * self.settings.selector.max_frames
+        usable = len(self.views) + len(self._reserve) + unread_repeats
+        return usable < _CHOICE_PER_BUDGET_FRAME * self.settings.selector.max_frames
 
     def process(self, frame: Frame, detection: Detection, *, following: tuple[Detection, int] | None = None) -> FrameOutcome:
         """Decide about one frame (already detected) and update coverage and the incremental solve.
