@@ -12,15 +12,17 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rerun.chunk as rrc
 
 from calibcoach.app.cli import main
-from calibcoach.app.live import CameraLostError, PacedSource, run_live
+from calibcoach.app.live import CameraLostError, PacedSource, detect_on_all_cores, run_live
 from calibcoach.app.session import SessionSettings
 from calibcoach.app.viewer import Viewer
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector
 from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.recording import read_session
@@ -169,3 +171,17 @@ def test_source_auto_falls_back_when_no_camera_is_attached(recordings_dir: Path,
     assert (tmp_path / "o" / "camera_matrix.npy").exists() and (tmp_path / "o" / "session.rrd").exists()
     assert main(["live", "--source", "auto", "--out", str(tmp_path / "p"), "--no-viewer"]) == 2
     assert "found no camera" in capsys.readouterr().err
+
+
+def test_detection_is_bit_identical_on_one_and_two_opencv_threads(recordings_dir: Path) -> None:
+    # live detection uses OpenCV's threads (app/live.py detect_on_all_cores); a replay of the
+    # recording detects single-threaded on worker threads: both must see the very same corners
+    frames = list(open_source(recordings_dir / DEMO))[::10]
+    detector = CharucoBoardDetector(BoardSpec())
+    cv2.setNumThreads(1)
+    single = [detector.detect(frame.grey()) for frame in frames]
+    threaded = [detect_on_all_cores(detector, frame) for frame in frames]
+    assert cv2.getNumThreads() == 1  # back to one for the solves
+    assert sum(d.corner_count for d in single) > 200
+    for a, b in zip(single, threaded, strict=True):
+        assert np.array_equal(a.ids, b.ids) and np.array_equal(a.corners_px, b.corners_px)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from calibcoach.app.replay import run_replay
-from calibcoach.app.session import SessionSettings
 from calibcoach.app.scan import Look, SparseScan, compare_views, same_view
+from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.select import SelectorSettings
