@@ -4,16 +4,22 @@ A 30 fps sequence shows every pose many times over: a board held still for a sec
 near-identical frames, a slow move is a chain of frames each a few pixels from the last. Decoding
 and detecting all of them is nearly all of a replay's cost, while the selector would reject almost
 all of them as duplicates. So a replay of a source with random access (a folder of images) looks at
-every `stride`-th frame first and fills in between two looked-at frames only where they differ:
-the board moved more than `same_view_frac` of the image diagonal at any corner, corners appeared
-or vanished, the board came or went, or (with no board in either) the scene changed. Filling in
-bisects, so a move is sampled more densely the faster it goes, and a folder of independent stills,
-whose neighbours always differ, is read completely.
+every `stride`-th frame first and, between two looked-at frames, bisects only where they differ:
+the board moved more than `SAME_VIEW_FRAC` of the image diagonal at some corner, most corners
+came or went, the board came or went, or (with no board at either end) the scene changed. A move
+is thus sampled more densely the faster it goes, and a folder of independent stills, whose
+neighbours always differ, is read completely.
+
+Two cases are sampled rather than skipped: a held board whose detection flickers (each frame finds
+another part of its corners) is looked at every 8th frame, and once the folder has shown itself
+to be footage, stretches with no marker in sight every 4th, so a board shown for 4 frames is still
+found. A capture with few usable frames even counting the held repeats passed over gets a second
+pass near its usable boards (`fill_in`, driven by app/replay.py).
 
 What is passed over lies between two frames showing the same view within a few per cent of the
 image: closer to one of them than the selector's own duplicate distance, so it could only have
 been rejected as a duplicate or have added a sliver of information. Every decision depends on the
-detections alone, never on timing, so a replay is reproducible whatever the machine.
+detections alone, never on timing or threads, so a replay is reproducible whatever the machine.
 """
 
 from __future__ import annotations
