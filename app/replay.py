@@ -11,11 +11,9 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-
-import numpy as np
 
 from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
@@ -64,29 +62,17 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     first = settle or CharucoBoardDetector(board)
     count = None if every_frame else source.frame_count_for_random_access
     if count is not None:
-        source.skipped = []
-        index = 0
-        while index < count:  # detect one by one until the print's legacy/inverted variant is known
-            item = source.load(index)
-            index += 1
-            if isinstance(item, SkippedFrame):
-                source.skipped.append(item)
-                continue
-            yield item, first.detect(item.grey())
-            if first.settled or item.index >= _SETTLE_FRAMES:
-                break
+        loaded = _LoadedInOrder(source, count)
+        yield from _settling(loaded, first)
         detectors = _ThreadDetectors(_settled_spec(first))
-        corners_m = np.asarray(detectors.spec.cv_board().getChessboardCorners(), np.float64).reshape(-1, 3)
-        sparse = SparseScan(source, detectors.detect, start=index, workers=workers, board_corners_m=corners_m)
+        sparse = SparseScan(source, detectors.detect, start=loaded.next_index, workers=workers,
+                            board_corners_m=detectors.spec.corner_points_m())
         if scans_out is not None:
             scans_out.append(sparse)
         yield from sparse
         return
     frames = iter(source)
-    for frame in frames:  # detect sequentially until the print's legacy/inverted variant is known
-        yield frame, first.detect(frame.grey())
-        if first.settled or frame.index >= _SETTLE_FRAMES:
-            break
+    yield from _settling(frames, first)
     detectors = _ThreadDetectors(_settled_spec(first))
     pending: deque[tuple[Frame, Future[Detection]]] = deque()
     with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="detect") as pool:
@@ -102,6 +88,31 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
         finally:
             for _f, fut in pending:
                 fut.cancel()
+
+
+def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterator[tuple[Frame, Detection]]:
+    """Detect one by one until the print's legacy/inverted variant is known (or enough frames tried)."""
+    for frame in frames:
+        yield frame, detector.detect(frame.grey())
+        if detector.settled or frame.index >= _SETTLE_FRAMES:
+            return
+
+
+class _LoadedInOrder:
+    """A random-access source's frames in order through `load`; `next_index` is where to go on."""
+
+    def __init__(self, source: FrameSource, count: int) -> None:
+        self.source, self.count, self.next_index = source, count, 0
+        source.skipped = []
+
+    def __iter__(self) -> Iterator[Frame]:
+        while self.next_index < self.count:
+            item = self.source.load(self.next_index)
+            self.next_index += 1
+            if isinstance(item, SkippedFrame):
+                self.source.skipped.append(item)
+                continue
+            yield item
 
 
 def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
