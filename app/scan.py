@@ -5,7 +5,7 @@ near-identical frames, a slow move is a chain of frames each a few pixels from t
 and detecting all of them is nearly all of a replay's cost, while the selector would reject almost
 all of them as duplicates. So a replay of a source with random access (a folder of images) looks at
 every `stride`-th frame first and, between two looked-at frames, bisects only where they differ:
-the board moved more than `SAME_VIEW_FRAC` of the image diagonal at some corner, most corners
+the board moved more than 1% of the image diagonal at some corner, most corners
 came or went, the board came or went, or (with no board at either end) the scene changed. A move
 is thus sampled more densely the faster it goes, and a folder of independent stills, whose
 neighbours always differ, is read completely.
@@ -16,8 +16,8 @@ to be footage, stretches with no marker in sight every 4th, so a board shown for
 found. A capture with few usable frames even counting the held repeats passed over gets a second
 pass near its usable boards (`fill_in`, driven by app/replay.py).
 
-What is passed over lies between two frames showing the same view within a few per cent of the
-image: closer to one of them than the selector's own duplicate distance, so it could only have
+What is passed over lies between two frames showing the same view within 1% of the image:
+far closer to one of them than the selector's own duplicate distance (6%), so it could only have
 been rejected as a duplicate or have added a sliver of information. Every decision depends on the
 detections alone, never on timing or threads, so a replay is reproducible whatever the machine.
 """
@@ -36,7 +36,10 @@ from calibcoach.coverage.detector import Detection
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 
 DEFAULT_STRIDE = 8
-SAME_VIEW_FRAC = 0.03  # largest corner movement between two "same view" frames, share of the image diagonal
+# Largest corner movement between two "same view" frames, share of the image diagonal (15 px at
+# 720p): a held board's tremor stays under it; a slow sweep through new tilts, where the
+# information is, goes over it within a few frames.
+SAME_VIEW_FRAC = 0.01
 _MIN_CORNERS = 6  # below this a frame shows no usable board; such frames are compared by thumbnail
 _SHARED_CORNERS = 0.5  # detection drops and regains a third of the corners of a still, tilted board from frame to frame
 # ...so the two ends together must hold nearly every corner the board shows inside the image: a

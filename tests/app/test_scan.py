@@ -82,9 +82,9 @@ def _look(index: int, corners: np.ndarray | None, thumb_grey: float, markers: in
 def test_same_view_rules() -> None:
     grid = np.stack(np.meshgrid(np.arange(7) * 40.0 + 300, np.arange(10) * 40.0 + 100), -1).reshape(-1, 2)
     diag = float(np.hypot(*SIZE))
-    still = _look(0, grid, 100), _look(8, grid + 0.02 * diag, 100)
+    still = _look(0, grid, 100), _look(8, grid + 0.006 * diag, 100)
     assert same_view(*still, SIZE)
-    assert not same_view(still[0], _look(8, grid + 0.04 * diag, 100), SIZE)  # moved too far
+    assert not same_view(still[0], _look(8, grid + 0.012 * diag, 100), SIZE)  # moved too far
     # detection dropped a third of the corners: the board is held, but frames between may find more
     assert compare_views(still[0], _look(8, grid[:40], 100), SIZE) == "held"
     assert compare_views(still[0], _look(8, grid[:66], 100), SIZE) == "same"  # a steady detection
