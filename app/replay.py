@@ -173,8 +173,8 @@ class _Feeder:
         self.read = 0
         self.stopped = self.interrupted = False
 
-    def run(self, stream: Iterator[tuple[Frame, Detection]], *, enough: Callable[[], bool] | None = None) -> None:
-        """Feed `stream` until it ends, the stop rule is met, or `enough()` says so."""
+    def run(self, stream: Iterator[tuple[Frame, Detection]]) -> None:
+        """Feed `stream` until it ends or the stop rule is met."""
         held: tuple[Frame, Detection] | None = None
         try:
             for item in _with_end(stream):
@@ -190,8 +190,6 @@ class _Feeder:
                         self.on_outcome(outcome, frame)
                     if self.session.done:
                         self.stopped = True
-                        break
-                    if enough is not None and enough():
                         break
                 held = item
         except KeyboardInterrupt:

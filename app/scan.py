@@ -243,7 +243,7 @@ class SparseScan:
 
     def fill_in(self, *, near: int = _FILL_NEAR) -> Iterator[tuple[Frame, Detection]]:
         """The frames passed over within `near` frames of a usable board: the nearest first
-        (distance 1 everywhere, then 2, ...), each distance in index order; stop whenever enough.
+        (distance 1 everywhere, then 2, ...), each distance in index order.
 
         For a hurried capture, where the selector is short of frames to choose from: a board seen
         briefly or moving is where the frames that were passed over still differ a little.

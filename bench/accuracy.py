@@ -58,19 +58,26 @@ def rendered(lens: str, style: str, *, seconds: float, fps: float, seed: int = 7
     folder = ROOT / "cache" / f"{lens}_{style}_{seconds:g}s_{fps:g}fps{suffix}"
     if (folder / "truth.json").exists():
         return folder
-    spec = BoardSpec()
     camera = LENSES[lens]
+    poses = render_recording(folder, camera, lens_name=lens, style=style, seconds=seconds, fps=fps, seed=seed)
+    write_truth(folder, camera, [(p.index, p.rvec, p.tvec) for p in poses])
+    return folder
+
+
+def render_recording(folder: Path, camera: CameraModel, *, lens_name: str, style: str, seconds: float, fps: float,
+                     seed: int) -> list:
+    """Render a handheld capture of the default board into a recording at `folder`; returns its poses."""
+    spec = BoardSpec()
     trajectory = handheld_trajectory(camera, spec, style, seconds=seconds, seed=seed)
     poses = trajectory.sample(seconds=seconds, fps=fps)
-    source = SimulatedCamera(camera, spec, poses, seed=seed, lens_name=lens, trajectory=trajectory)
+    source = SimulatedCamera(camera, spec, poses, seed=seed, lens_name=lens_name, trajectory=trajectory)
     start = time.perf_counter()
     with RecordingWriter(folder, camera_id=source.info.camera_id, kind="sim", image_size=camera.image_size, fps=fps,
                          controls={}, board=spec.to_dict()) as writer:
         for frame in source:
             writer.write(frame)
-    write_truth(folder, camera, [(p.index, p.rvec, p.tvec) for p in poses])
     print(f"rendered {folder.name}: {len(poses)} frames in {time.perf_counter() - start:.0f} s")
-    return folder
+    return poses
 
 
 def detections(folder: Path) -> dict[int, Detection]:

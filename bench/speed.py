@@ -28,6 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from accuracy import render_recording
 from plots import grouped_bars, line_chart, save
 
 from calibcoach.app.replay import run_replay
@@ -39,9 +40,8 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
-from calibcoach.drivers.recording import RecordingWriter
 from calibcoach.drivers.replay import open_source
-from calibcoach.drivers.sim import LENSES, SimulatedCamera, handheld_trajectory
+from calibcoach.drivers.sim import LENSES
 
 ROOT = Path(__file__).resolve().parent  # a bench script may find its own folder; the package never does
 RESULTS = ROOT / "results"
@@ -73,17 +73,8 @@ def rendered_speed_capture(name: str, camera, frames: int) -> Path:
     folder = ROOT / "cache" / f"speed_{name}_{RENDER_FPS:g}fps"
     if (folder / "session.json").exists() and len(list((folder / "frames").glob("*.png"))) >= frames:
         return folder
-    spec = BoardSpec()
-    seconds = frames / RENDER_FPS
-    trajectory = handheld_trajectory(camera, spec, "careful", seconds=seconds, seed=7)
-    poses = trajectory.sample(seconds=seconds, fps=RENDER_FPS)
-    source = SimulatedCamera(camera, spec, poses, seed=7, lens_name=f"speed_{name}", trajectory=trajectory)
-    start = time.perf_counter()
-    with RecordingWriter(folder, camera_id=source.info.camera_id, kind="sim", image_size=camera.image_size, fps=RENDER_FPS,
-                         controls={}, board=spec.to_dict()) as writer:
-        for frame in source:
-            writer.write(frame)
-    print(f"rendered {folder.name}: {len(poses)} frames in {time.perf_counter() - start:.0f} s")
+    render_recording(folder, camera, lens_name=f"speed_{name}", style="careful", seconds=frames / RENDER_FPS,
+                     fps=RENDER_FPS, seed=7)
     return folder
 
 
