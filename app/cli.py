@@ -109,6 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--fallback", help="with --source auto: what to run when no camera is attached (e.g. a recording)")
     lv.add_argument("--out", type=Path, required=True, help="output folder")
     lv.add_argument("--record", type=Path, help="record the session here as it happens (crash-safe)")
+    lv.add_argument("--guidance-jsonl", type=Path,
+                    help="write every step (decision, guidance sentence and target, progress) here as JSON lines")
     lv.add_argument("--resume", type=Path, help="continue a recorded session (crashed, stopped or unplugged)")
     add_viewer_arguments(lv, default="web")
     lv.add_argument("--size", type=_size, help="capture resolution, e.g. 1920x1080")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from calibcoach.app.outputs.report import write_session_outputs
 from calibcoach.app.replay import run_replay
-from calibcoach.app.session import FrameOutcome, SessionSettings
+from calibcoach.app.session import FrameOutcome, Progress, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.base import Frame, SourceInfo
@@ -38,20 +38,26 @@ class ProgressLine:
         p = outcome.progress
         fps = p.frames_seen / max(now - self._start, 1e-6)
         of = f"/{self.total}" if self.total else ""
-        unc = f"{p.uncertainty_p95_px:.3f}" if p.uncertainty_p95_px is not None else "--"
         line = (f"frame {outcome.frame_index + 1}{of}  kept {p.frames_accepted}  coverage {p.coverage * 100:3.0f}%  "
-                f"uncertainty p95 {unc}/{p.uncertainty_target_px:.3f} px  {fps:4.0f} fps  last: {outcome.decision.reason}")
+                f"expected error {error_words(p)}  {fps:4.0f} fps  last: {outcome.decision.reason}")
         if self.tty:
             print("\r" + line[:160].ljust(160), end="", file=sys.stderr, flush=True)
         else:
             print(line, file=sys.stderr, flush=True)
-        if not outcome.guidance.coverage_complete and outcome.guidance.sentence != self._last_guidance and not self.tty:
+        if outcome.guidance.target is not None and outcome.guidance.sentence != self._last_guidance and not self.tty:
             self._last_guidance = outcome.guidance.sentence
             print(f"  next: {outcome.guidance.sentence}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.enabled and self.tty:
             print(file=sys.stderr)
+
+
+def error_words(p: Progress) -> str:
+    """'0.041/0.030 px' (E against its target), or '--' before the first solve."""
+    if p.expected_error_px is None or p.target_px is None:
+        return "--"
+    return f"{p.expected_error_px:.3f}/{p.target_px:.3f} px"
 
 
 def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) -> SessionSettings:
@@ -162,7 +168,8 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
     print(
         f"{verdict.grade.upper()}: {cal.camera.model} model, RMS {cal.rms_px:.3f} px on {len(cal.views)} frames, "
         f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}, "
-        f"uncertainty p95 {result.uncertainty.p95_covered_px:.3f} px where the board was seen, coverage {result.coverage.completeness() * 100:.0f}%"
+        f"expected error E {result.uncertainty.expected_error_px:.3f} px where the board was seen "
+        f"(target {result.target_px:.3f} px), coverage {result.coverage.completeness() * 100:.0f}%"
     )
     for reason in verdict.reasons:
         print(f"  - {reason}")

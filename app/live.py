@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -216,12 +217,11 @@ def run_live(
     """
     info = source.info
     detector = CharucoBoardDetector(board)
-    session: CalibrationSession | None = None
+    assistant: Assistant | None = None
     writer: RecordingWriter | None = None
     watch = FocusWatch(locked_controls or {})
     start = time.perf_counter()
     processed = resumed = 0
-    held: tuple[Frame, Detection] | None = None
     stopped = interrupted = False
     grabber: FrameGrabber | None = None
 
@@ -230,28 +230,34 @@ def run_live(
         return LiveStats(processed, dropped, time.perf_counter() - start, stopped, interrupted, resumed,
                          watch.problem, detector.spec)
 
-    def feed(frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> bool:
-        nonlocal session, processed
-        if session is None:
-            session = CalibrationSession(detector.spec, frame.image_size, settings)
-        if watch.problem is not None:
-            session.accepting = False
-        outcome = session.process(frame, detection, following=following)
+    def handle(step: Step | None) -> bool:
+        """One decided frame: the focus watch, the caller's callback; True when the stop rule is met."""
+        nonlocal processed
+        if step is None or step.outcome is None or step.frame is None:
+            return False
+        assert assistant is not None
         processed += 1
-        if watch.problem is None and watch.check(frame, outcome, session.selector.accepted_blurs):
-            session.accepting = False
+        if watch.problem is None and watch.check(step.frame, step.outcome, assistant.session.selector.accepted_blurs):
+            assistant.session.accepting = False
         if on_outcome is not None:
-            on_outcome(outcome, frame, stats())
-        return session.done
+            on_outcome(step.outcome, step.frame, stats())
+        return step.progress.done
+
+    def feed(frame: Frame, detection: Detection) -> bool:
+        nonlocal assistant
+        if assistant is None:
+            assistant = Assistant(detector.spec, frame.image_size, settings=settings)
+        if watch.problem is not None:
+            assistant.session.accepting = False
+        return handle(assistant.feed_detected(frame, detection))  # decides the frame before this one
 
     if resume is not None:  # replay what was recorded, exactly as `calibrate` would, then go on live
         for frame in RecordingSource(resume).frames():
             detection = detect_on_all_cores(detector, frame)
             resumed += 1
-            if held is not None and feed(*held, (detection, frame.timestamp_ns)):
-                stopped, held = True, None
+            if feed(frame, detection):
+                stopped = True
                 break
-            held = (frame, detection)
     if stopped:  # the resumed recording already met the stop rule: nothing left to capture
         source = _NoFrames(info)
     grabber = FrameGrabber(source, on_capture).start()
@@ -268,14 +274,11 @@ def run_live(
                         fps=info.fps, controls=dict(info.controls), board=detector.spec.to_dict(), append=resume is not None,
                     )
                 frame = replace(frame, index=writer.write(frame))  # recorded before processed: crash-safe
-            detection = detect_on_all_cores(detector, frame)
-            if held is not None and feed(*held, (detection, frame.timestamp_ns)):
+            if feed(frame, detect_on_all_cores(detector, frame)):
                 stopped = True
-                held = None
                 break
-            held = (frame, detection)
-        if held is not None and not stopped:
-            stopped = feed(*held, None)
+        if assistant is not None and not stopped:
+            stopped = handle(assistant.flush())  # the last frame, decided without lookahead
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -287,4 +290,4 @@ def run_live(
             " (nothing was recorded: pass --record DIR to keep a session across such losses)"
         reason = str(grabber.error) if isinstance(grabber.error, SourceError) else repr(grabber.error)
         raise CameraLostError(f"the camera stopped delivering frames after {processed} processed frames ({reason}){where}")
-    return session, stats()
+    return (None if assistant is None else assistant.session), stats()

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from calibcoach.app.commands import keep_serving, open_viewer, session_settings
+from calibcoach.app.assistant import step_record
+from calibcoach.app.commands import error_words, keep_serving, open_viewer, session_settings
 from calibcoach.app.live import LiveStats, PacedSource, run_live
 from calibcoach.app.outputs.report import write_session_outputs
 from calibcoach.app.session import FrameOutcome
@@ -104,8 +106,7 @@ class LiveStatus:
             return
         self._last = now
         p = outcome.progress
-        unc = "--" if p.uncertainty_p95_px is None else f"{p.uncertainty_p95_px:.3f}"
-        line = (f"kept {p.frames_accepted}  coverage {p.coverage * 100:3.0f}%  uncertainty {unc}/{p.uncertainty_target_px:.3f} px"
+        line = (f"kept {p.frames_accepted}  coverage {p.coverage * 100:3.0f}%  expected error {error_words(p)}"
                 f"  {stats.processed_fps:4.1f} fps  dropped {stats.frames_dropped}  last: {outcome.decision.reason}")
         if self.tty:
             print("\r" + f"{line} | {guidance}"[:200].ljust(200), end="", file=sys.stderr, flush=True)
@@ -116,6 +117,17 @@ class LiveStatus:
     def close(self) -> None:
         if self.enabled and self.tty:
             print(file=sys.stderr)
+
+
+def open_guidance_jsonl(path: Path | None):
+    """The --guidance-jsonl file, opened for line-buffered writing (None when not asked for)."""
+    if path is None:
+        return None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return path.open("w", encoding="utf-8")
+    except OSError as exc:
+        raise CalibcoachError(f"cannot write --guidance-jsonl {path} ({exc.strerror}); pass a writable path") from None
 
 
 def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
@@ -129,10 +141,14 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
     with source, open_viewer(args) as viewer:
         locked = lock_focus(args, source, focus)
         status = LiveStatus(enabled=not args.quiet)
+        steps = open_guidance_jsonl(args.guidance_jsonl)
 
         def on_outcome(outcome: FrameOutcome, frame: Frame, stats: LiveStats) -> None:
             status(outcome, frame, stats)
             viewer.log_frame(outcome, frame, image=False)  # the capture thread logs every image
+            if steps is not None:
+                steps.write(json.dumps(step_record(outcome, frame.timestamp_ns)) + "\n")
+                steps.flush()  # a program reading along sees each step as it is decided
 
         try:
             session, stats = run_live(source, board, session_settings(args, info, live=True),
@@ -140,12 +156,14 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
                                       on_capture=viewer.log_preview)
         finally:
             status.close()
+            if steps is not None:
+                steps.close()
         return _finish_live(args, argv, info, session, stats, locked, viewer)
 
 
 def _finish_live(args: argparse.Namespace, argv: list[str], info: Any, session: Any, stats: LiveStats,
                  locked: dict[str, float], viewer: Any) -> int:
-    why = ("Ctrl-C" if stats.interrupted else "stop rule met (coverage complete, uncertainty on target)"
+    why = ("Ctrl-C" if stats.interrupted else "stop rule met"
            if stats.stopped_early else "end of source")
     print(f"calibcoach: processed {stats.frames_processed} frames ({stats.processed_fps:.1f} fps, {stats.frames_dropped} "
           f"dropped by the capture thread) in {stats.seconds:.1f} s: {why}", file=sys.stderr)

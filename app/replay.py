@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
+from calibcoach.app.assistant import Assistant
 from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
@@ -164,34 +165,37 @@ def run_replay(
 
 
 class _Feeder:
-    """Feeds (frame, detection) streams to one session, one frame behind (the two-sided stillness test)."""
+    """Feeds (frame, detection) streams to one `Assistant` (which looks one frame ahead, like live)."""
 
     def __init__(self, settle: CharucoBoardDetector, settings: SessionSettings,
                  on_outcome: Callable[[FrameOutcome, Frame], None] | None) -> None:
         self.settle, self.settings, self.on_outcome = settle, settings, on_outcome
-        self.session: CalibrationSession | None = None
+        self.assistant: Assistant | None = None
         self.read = 0
         self.stopped = self.interrupted = False
 
+    @property
+    def session(self) -> CalibrationSession | None:
+        return None if self.assistant is None else self.assistant.session
+
     def run(self, stream: Iterator[tuple[Frame, Detection]]) -> None:
         """Feed `stream` until it ends or the stop rule is met."""
-        held: tuple[Frame, Detection] | None = None
         try:
             for item in _with_end(stream):
-                if item is not None:
+                if item is None:
+                    step = None if self.assistant is None else self.assistant.flush()
+                else:
                     self.read += 1
-                if held is not None:
-                    frame, detection = held
-                    if self.session is None:
-                        self.session = CalibrationSession(self.settle.spec, frame.image_size, self.settings)
-                    following = None if item is None else (item[1], item[0].timestamp_ns)
-                    outcome = self.session.process(frame, detection, following=following)
+                    frame, detection = item
+                    if self.assistant is None:
+                        self.assistant = Assistant(self.settle.spec, frame.image_size, settings=self.settings)
+                    step = self.assistant.feed_detected(frame, detection)
+                if step is not None and step.outcome is not None and step.frame is not None:
                     if self.on_outcome is not None:
-                        self.on_outcome(outcome, frame)
-                    if self.session.done:
+                        self.on_outcome(step.outcome, step.frame)
+                    if step.progress.done:
                         self.stopped = True
                         break
-                held = item
         except KeyboardInterrupt:
             self.interrupted = True  # stop reading; what was accepted is solved as usual
         finally:

@@ -9,51 +9,86 @@ caller (the replay runner detects ahead on worker threads; a live loop on the ne
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
+from calibcoach.app.guide import Guide
 from calibcoach.app.solve.calibrate import pose_for_view, solve
 from calibcoach.app.solve.model_choice import choose_model
+from calibcoach.app.solve.next_view import error_cut, rank_poses
 from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict, View
-from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate
+from calibcoach.app.solve.robust import (
+    look_alike_correlation,
+    look_alike_weights,
+    noise_sigma_px,
+    robust_calibrate,
+)
 from calibcoach.app.solve.uncertainty import (
     covariance_from_information,
     covered_region_mask,
-    image_grid,
     information_gain,
+    intrinsic_covariance,
     intrinsic_names,
     marginal_information,
-    pixel_variance_weight,
-    projection_jacobian,
-    projection_sigma,
     projection_uncertainty,
     view_jacobian,
 )
-from calibcoach.app.solve.verdict import judge, uncertainty_target_px
+from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.candidates import CandidatePose, candidate_poses, ranges_for
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
-from calibcoach.coverage.grid import CoverageMap, CoverageRequirements
-from calibcoach.coverage.guidance import Guidance, next_guidance
+from calibcoach.coverage.grid import CoverageMap, CoverageRequirements, region_grid_shape
+from calibcoach.coverage.guidance import Guidance
 from calibcoach.coverage.pose import BoardPose, estimate_pose
 from calibcoach.coverage.select import (
     Decision,
     FrameSelector,
     SelectorSettings,
+    accepted_view,
     board_motion_px,
     edge_blur_px,
+    look_alike_groups,
 )
+from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.geometry import pose_matrix
 from calibcoach.drivers.lens import MODELS, CameraModel
 
 MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
 FULL_MODEL_VIEWS = 12  # below this the incremental solve uses the reduced bootstrap model
-MIN_VIEWS_TO_STOP = 15  # never stop on fewer frames, however good they look
+MIN_VIEWS_TO_STOP = 15  # never stop on fewer frames: the model choice cross-validates two halves of >= 8
+# Diminishing returns: stop once the best pose calibcoach could ask for would cut E by less than
+# this. E falls about as 1 / sqrt(frames), so at a 3% cut per frame ten more poses (~20 s of a
+# person's time) would buy less than a quarter; pose_calib stops each parameter at < 10% per frame.
+# On the closed-loop simulator this point came after 20-35 diverse frames, about a minute.
+DIMINISHING_CUT = 0.03
+ACCEPT_SHARE = 0.5  # a frame without new coverage is kept when it cuts E by half what the best target would
+MIN_ACCEPT_CUT = 0.005  # and by at least 0.5%
 _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 _CHOICE_PER_BUDGET_FRAME = 1.5  # usable frames per budget frame below which a replay reads more
 _MIN_FILL_GAIN = 0.002  # a reserve frame must cut the mean pixel variance by 0.2% to be worth solving with
+
+
+_LENS_MOVED_PX = 2.0
+
+
+def _lens_moved_px(a: CameraModel, b: CameraModel) -> float:
+    """Largest pixel shift between two models over a 9 x 5 grid of a's image (inf on a model change)."""
+    if a.model != b.model:
+        return float("inf")
+    w, h = a.image_size
+    grid = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 9) * w, np.linspace(0.05, 0.95, 5) * h), -1).reshape(-1, 2)
+    moved = b.project(a.unproject(grid)) - grid
+    return float(np.max(np.linalg.norm(moved, axis=1))) if np.all(np.isfinite(moved)) else float("inf")
+
+
+def _detection_of(view: View) -> Detection:
+    return Detection(view.image_points_px.astype(np.float32), view.ids, view.object_points_m.astype(np.float32),
+                     np.zeros(0, np.int32))
 
 
 def _view_of(frame: Frame, detection: Detection) -> View:
@@ -67,7 +102,7 @@ class SessionSettings:
     selector: SelectorSettings = field(default_factory=SelectorSettings)
     hfov_guess_deg: float = 70.0  # bootstrap intrinsics for pose estimates before the first solve
     stop_when_done: bool = True
-    uncertainty_target_px: float | None = None  # stop rule's p95 target; None = 0.05 px at 720p, scaled with the diagonal
+    error_target_px: float | None = None  # stop rule's E target; None = derived from the corner noise (verdict.py)
     coverage: CoverageRequirements = field(default_factory=CoverageRequirements)
     use_motion_gate: bool = True  # off for folders of independent photos
 
@@ -76,11 +111,14 @@ class SessionSettings:
 class Progress:
     frames_seen: int
     frames_accepted: int
-    coverage: float  # 0..1
-    uncertainty_p95_px: float | None  # over the covered region; None before the first incremental solve
-    uncertainty_target_px: float
+    coverage: float  # 0..1, of what this lens can show
+    expected_error_px: float | None  # E over the covered region; None before the first incremental solve
+    target_px: float | None  # the stop rule's E target; None until the corner noise is measured
+    uncertainty_p95_px: float | None  # secondary: p95 of the worst-direction sigma over the covered region
+    best_next_cut: float | None  # relative cut of E the current target would bring
     rejections: dict[str, int]
     done: bool
+    stop_reason: str = ""  # why the stop rule fired, once it has
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +134,7 @@ class FrameOutcome:
     progress: Progress
     camera: CameraModel  # the intrinsics the pose was estimated with (the bootstrap guess before any solve)
     coverage: CoverageMap  # the session's live map (shared, not a copy: read it before the next frame)
+    board_centre_px: np.ndarray | None = None  # (2,) float64 where the board's centre is in this frame (from the pose)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +148,9 @@ class SessionResult:
     rejections: dict[str, int]
     frames_seen: int
     check_image: np.ndarray | None  # one accepted frame, for the undistortion check picture
+    noise_px: float  # corner noise per coordinate the final solve measured (dof-corrected RMS)
+    target_px: float  # the E target the verdict judged against
+    stop_reason: str  # why the capture ended ("" when the source simply ran out)
 
 
 class CalibrationSession:
@@ -124,28 +166,44 @@ class CalibrationSession:
             raise CalibrationError(f"unknown model {self.settings.model!r}; pass --model auto, pinhole, rational or fisheye")
         self.board = board
         self.image_size = image_size
-        self.selector = FrameSelector(image_size, squares_x=board.squares_x, settings=self.settings.selector,
-                                      coverage=CoverageMap(image_size, self.settings.coverage))
-        self.views: list[View] = []
+        self.geometry = BoardGeometry.of(board)
         self.camera = CameraModel.from_fov(image_size, self.settings.hfov_guess_deg)
+        self.selector = FrameSelector(image_size, squares_x=board.squares_x, settings=self.settings.selector,
+                                      coverage=CoverageMap(image_size, self.settings.coverage,
+                                                           ranges=ranges_for(self.camera, self.geometry)))
+        self.views: list[View] = []
         self.working_model = "pinhole" if self.settings.model == "auto" else self.settings.model
         self.uncertainty: UncertaintyMap | None = None
         self._information: np.ndarray | None = None  # (P, P) intrinsics' information, unit noise, poses marginalised
-        self._pixel_weight: np.ndarray | None = None  # (P, P) turns a covariance into mean pixel variance
-        self.target_px = self.settings.uncertainty_target_px or uncertainty_target_px(image_size)
+        self._error_weight: np.ndarray | None = None  # (P, P) W: E^2 = sigma^2 trace(W S^-1) over the covered region
+        self.noise_px: float | None = None  # corner noise per coordinate from the latest incremental solve
         self.frames_seen = 0
         self._previous: tuple[Detection, int] | tuple[None, None] = (None, None)
         self._check_image: tuple[int, np.ndarray] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
         self.budget_fill: tuple[int, int] = (0, 0)  # (frames added at the end, candidates they came from)
+        self._candidates: list[CandidatePose] = []
+        self._candidates_camera: CameraModel | None = None  # the intrinsics the candidates were built with
+        self.guide = Guide(image_size, self.geometry.centre_m)
+        self.stop_reason = ""
+        self.look_alike_correlation = 0.0  # residual correlation of look-alike frames in the final solve
         self._done = False
         self.accepting = True  # a live session turns this off when the focus drifts
+        self._refresh_lens()
+        self._rank()
 
     # --- per frame ------------------------------------------------------------------------------
     @property
     def done(self) -> bool:
         return self._done
+
+    @property
+    def target_px(self) -> float | None:
+        """The stop rule's target for E (px): given in the settings, else from the measured corner noise."""
+        if self.settings.error_target_px is not None:
+            return self.settings.error_target_px
+        return None if self.noise_px is None else error_target_px(self.noise_px, self.image_size)
 
     def short_of_choice(self, unread_repeats: int = 0) -> bool:
         """Too few usable frames for the final solve to choose its budget from (a hurried capture).
@@ -176,16 +234,20 @@ class CalibrationSession:
         previous = self._previous[0]
         just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
         self._previous = (detection, frame.timestamp_ns)
-        pose = estimate_pose(detection, self.camera) if detection.corner_count >= self.settings.selector.min_corners else None
+        pose = self._pose(detection) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
         if gated is None and not self.accepting:
             gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
+        if gated is None and self._done:
+            gated = Decision(False, "frame limit", f"capture complete ({self.stop_reason})", quality=0.0)
         blur = None
         if gated is None:
             blur = edge_blur_px(frame.grey(), detection.corners_px)
+            best = self.guide.best
+            needed = max(MIN_ACCEPT_CUT, ACCEPT_SHARE * (best.error_cut if best is not None else 0.0))
             decision, contribution = self.selector.decide(
                 frame.index, detection, pose, motion_px_s=motion, blur_px=blur,
-                uncertainty_gain=lambda: self._uncertainty_gain(detection, pose),
+                uncertainty_gain=lambda: self._error_cut(detection, pose), uncertainty_needed=needed,
                 just_appeared=just_appeared,
             )
         else:
@@ -198,8 +260,12 @@ class CalibrationSession:
             self.views.append(_view_of(frame, detection))
             if self._check_image is None or detection.corner_count > self._check_image[0]:
                 self._check_image = (detection.corner_count, frame.image)
-            self._incremental_solve()
+            self._update_after_accept()
+        self.guide.observe(frame.timestamp_ns, pose, accepted=len(self.views))
         return self._outcome(frame, detection, pose, decision, blur, motion)
+
+    def _pose(self, detection: Detection) -> BoardPose | None:
+        return estimate_pose(detection, self.camera, self.geometry.centre_m)
 
     def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
         """Corner speed around this frame, px/s: the larger of the backward and forward differences."""
@@ -216,69 +282,154 @@ class CalibrationSession:
                 speeds.append(moved / dt_s)
         return max(speeds) if speeds else None
 
-    def _uncertainty_gain(self, detection: Detection, pose: BoardPose | None) -> float:
-        """Relative drop of the mean pixel variance if this frame joined the solve (0 before any solve)."""
-        if self._information is None or pose is None:
-            return 0.0
+    def _error_cut(self, detection: Detection, pose: BoardPose | None) -> float:
+        """Relative cut of E if this frame joined (0 when there is nothing to compare with yet)."""
+        if self._information is None or self._error_weight is None or pose is None \
+                or len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:
+            return 0.0  # before the first solve the full model's information is rank deficient: coverage decides
         J_intr, J_pose = view_jacobian(self.camera, detection.object_points_m, pose.rvec, pose.tvec)
         if not (np.all(np.isfinite(J_intr)) and np.all(np.isfinite(J_pose))):
             return 0.0  # a pose the current model cannot project (an early, poor solve): no evidence either way
         try:
-            _, drop = information_gain(self._information, J_intr, J_pose, weight=self._pixel_weight)
+            return error_cut(self._information, self._error_weight, J_intr, J_pose)[1]
         except np.linalg.LinAlgError:
             return 0.0
-        return drop
 
-    def _incremental_solve(self) -> None:
+    # --- after a frame is accepted ----------------------------------------------------------------
+    def _update_after_accept(self) -> None:
+        """Solve, re-read the coverage with the new intrinsics, re-rank the next poses, check the stop rule."""
+        rvecs_tvecs = self._incremental_solve()
+        if rvecs_tvecs is None:  # no solve yet: the poses the bootstrap intrinsics give
+            poses = [pose_for_view(self.camera, v) for v in self.views]
+            if any(p is None for p in poses):
+                return
+            rvecs = np.array([p[0] for p in poses])  # type: ignore[index]
+            tvecs = np.array([p[1] for p in poses])  # type: ignore[index]
+        else:
+            rvecs, tvecs = rvecs_tvecs
+        self._refresh_lens()
+        self._information = marginal_information(self.camera, self.views, rvecs, tvecs)
+        covariance = (self.noise_px or 1.0) ** 2 * covariance_from_information(self._information)
+        corner_sets = [v.image_points_px for v in self.views]
+        self.uncertainty = projection_uncertainty(
+            self.camera, covariance,
+            covered_mask_fn=lambda gx, gy: covered_region_mask(self.image_size, corner_sets, (gx.size, gy.size)),
+        )
+        self._error_weight = self.uncertainty.error_weight
+        self._rank()
+        self._check_stop()
+
+    def _incremental_solve(self) -> tuple[np.ndarray, np.ndarray] | None:
         if len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:
-            return
+            return None
         reduced = len(self.views) < FULL_MODEL_VIEWS
         try:
             raw = solve(self.views, self.image_size, self.working_model, reduced=reduced,
                         initial=self.camera if self.camera.model == self.working_model else None)
         except CalibrationError:
-            return
+            return None
         if self.settings.model == "auto" and self.working_model == "pinhole" and raw.camera.field_of_view_deg()[0] > 110.0:
             self.working_model = "fisheye"  # a pinhole model cannot follow this lens even for guidance
             try:
                 raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
             except CalibrationError:
-                return
+                return None
         self.camera = raw.camera
         n_points = sum(v.ids.size for v in self.views)
-        sigma = noise_sigma_px(raw.rms_px, n_points=n_points, n_params=len(intrinsic_names(raw.camera.model)), n_views=len(self.views))
-        sigma = max(sigma, 0.05)  # floor: early solves fit their few frames too well
-        self._information = marginal_information(raw.camera, self.views, raw.rvecs, raw.tvecs)
-        gx, gy = image_grid(self.image_size, (16, 9))
-        covered = covered_region_mask(self.image_size, [v.image_points_px for v in self.views], (gx.size, gy.size))
-        # the rotation any extrinsic absorbs is fitted where the board was seen (see uncertainty.py)
-        J = projection_jacobian(raw.camera, gx, gy, fit_mask=covered if covered.any() else None)
-        self._pixel_weight = pixel_variance_weight(J)
-        covariance = sigma**2 * covariance_from_information(self._information)
-        self.uncertainty = UncertaintyMap(gx, gy, projection_sigma(J, covariance), covered)
-        if (
-            self.settings.stop_when_done
-            and len(self.views) >= MIN_VIEWS_TO_STOP
-            and self.selector.coverage.is_complete()
-            and self.uncertainty.p95_covered_px <= self.target_px
-        ):
-            self._done = True
+        self.noise_px = noise_sigma_px(raw.rms_px, n_points=n_points, n_params=len(intrinsic_names(raw.camera.model)),
+                                       n_views=len(self.views))
+        return raw.rvecs, raw.tvecs
+
+    def _refresh_lens(self) -> None:
+        """New intrinsics: candidate poses, ranges, reachable regions, and the map re-read from the kept frames.
+
+        The candidates (~0.15 s to build) are rebuilt only when the lens model moved by more than
+        `_LENS_MOVED_PX` anywhere in the image: later solves refine the intrinsics by fractions of
+        a pixel, which change neither which poses register nor where the board would be.
+        """
+        ranges = ranges_for(self.camera, self.geometry)
+        if self._candidates_camera is None or _lens_moved_px(self._candidates_camera, self.camera) > _LENS_MOVED_PX:
+            self._candidates = candidate_poses(self.camera, self.geometry, ranges)
+            self._candidates_camera = self.camera
+        old = self.selector.coverage
+        rows, cols = region_grid_shape(self.image_size)
+        reach = np.zeros((rows, cols))
+        w, h = self.image_size
+        for cand in self._candidates:  # the most corners any candidate puts into each cell
+            px = cand.view.image_points_px
+            r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
+            c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
+            counts = np.zeros((rows, cols))
+            np.add.at(counts, (r, c), 1.0)
+            reach = np.maximum(reach, counts)
+        reachable = reach >= old.requirements.corners_per_region_cell
+        self.selector.coverage = CoverageMap(self.image_size, old.requirements, ranges=ranges, reachable=reachable)
+        for view in self.views:
+            det = _detection_of(view)
+            pose = self._pose(det)
+            self.selector.coverage.add(self.selector.coverage.contribution(det, pose), pose.footprint if pose else None)
+
+    def _rank(self) -> None:
+        information = self._information
+        weight = self._error_weight
+        if information is None or weight is None or not self.views:
+            # Nothing seen yet: ask for the easiest view, the board facing the camera at the centre, mid range.
+            first = [c for c in self._candidates if c.key[0] == 2 and c.key[1] == 1 and c.key[2] == 0 and c.key[3] == "mid"]
+            from calibcoach.app.solve.next_view import RankedPose
+
+            self.guide.update([RankedPose(c, 1.0, 0.0, 1.0) for c in first], self.camera, accepted=len(self.views))
+            return
+        ranking = rank_poses(self.camera, information, weight, self._candidates, self.selector.coverage,
+                             board_centre_m=self.geometry.centre_m, excluded=self.guide.failed,
+                             use_error=len(self.views) >= MIN_VIEWS_FOR_INCREMENTAL_SOLVE)
+        self.guide.update(ranking, self.camera, accepted=len(self.views))
+
+    def _check_stop(self) -> None:
+        """Coverage complete and E at its target, or nothing left worth asking for, or the budget full."""
+        if not self.settings.stop_when_done or self.uncertainty is None:
+            return
+        n = len(self.views)
+        if n >= self.settings.selector.max_frames:
+            self._stop(f"the frame budget ({self.settings.selector.max_frames}) is full")
+            return
+        if n < MIN_VIEWS_TO_STOP or self.noise_px is None:
+            return
+        E, target = self.uncertainty.expected_error_px, self.target_px
+        complete = self.selector.coverage.is_complete()
+        best = self.guide.best
+        if complete and target is not None and E <= target:
+            self._stop(f"coverage complete and E {E:.3f} px within its {target:.3f} px target")
+        elif best is None or (best.error_cut < DIMINISHING_CUT and best.coverage_gain <= 0.0):
+            cut = 0.0 if best is None else best.error_cut
+            self._stop(f"diminishing returns: the best next pose would cut E ({E:.3f} px) by only {cut * 100:.1f}%")
+
+    def _stop(self, reason: str) -> None:
+        self._done, self.stop_reason = True, reason
 
     def progress(self) -> Progress:
+        best = self.guide.best
         return Progress(
             frames_seen=self.frames_seen,
             frames_accepted=len(self.views),
             coverage=self.selector.coverage.completeness(),
-            uncertainty_p95_px=None if self.uncertainty is None else self.uncertainty.p95_covered_px,
-            uncertainty_target_px=self.target_px,
+            expected_error_px=None if self.uncertainty is None or self.noise_px is None else self.uncertainty.expected_error_px,
+            target_px=self.target_px,
+            uncertainty_p95_px=None if self.uncertainty is None or self.noise_px is None else self.uncertainty.p95_covered_px,
+            best_next_cut=None if best is None or not self.views else best.error_cut,
             rejections={k: v for k, v in self.selector.counts.items() if k != "accepted" and v},
             done=self._done,
+            stop_reason=self.stop_reason,
         )
 
     def _outcome(self, frame: Frame, detection: Detection, pose: BoardPose | None, decision: Decision,
                  blur: float | None, motion: float | None) -> FrameOutcome:
+        centre = None
+        if pose is not None:
+            px = self.camera.project((pose_matrix(pose.rvec) @ self.geometry.centre_m + pose.tvec).reshape(1, 3))[0]
+            centre = px if np.all(np.isfinite(px)) else None
         return FrameOutcome(frame.index, frame.name, detection, pose, decision, blur, motion,
-                            next_guidance(self.selector.coverage), self.progress(), self.camera, self.selector.coverage)
+                            self.guide.guidance(done=self._done), self.progress(), self.camera, self.selector.coverage,
+                            centre)
 
     # --- the end --------------------------------------------------------------------------------
     def finish(self) -> SessionResult:
@@ -298,20 +449,25 @@ class CalibrationSession:
         else:
             choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
         initial = self.camera if self.camera.model == choice.chosen else None
-        calibration = robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial)
+        calibration = self._with_look_alikes_weighted(
+            robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial))
         corner_sets = [v.image_points_px for v in calibration.views]
-        grid = (32, 18) if self.image_size[0] >= self.image_size[1] else (18, 32)
+        # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve
         uncertainty = projection_uncertainty(
-            calibration.camera, calibration.intrinsic_covariance, grid=grid,
+            calibration.camera, calibration.intrinsic_covariance,
             covered_mask_fn=lambda gx, gy: covered_region_mask(self.image_size, corner_sets, (gx.size, gy.size)),
         )
         coverage = self._final_coverage(calibration)
+        noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
+                               n_params=len(calibration.intrinsic_names), n_views=len(calibration.views))
         verdict = judge(
             calibration,
             coverage_completeness=coverage.completeness(),
             coverage_missing=coverage.summary()["missing"],  # type: ignore[arg-type]
             uncertainty=uncertainty,
             image_size=self.image_size,
+            noise_px=noise,
+            target_px=self.settings.error_target_px,
         )
         return SessionResult(
             calibration=calibration,
@@ -323,6 +479,9 @@ class CalibrationSession:
             rejections=dict(self.selector.counts),
             frames_seen=self.frames_seen,
             check_image=None if self._check_image is None else self._check_image[1],
+            noise_px=noise,
+            target_px=self.settings.error_target_px or error_target_px(noise, self.image_size),
+            stop_reason=self.stop_reason,
         )
 
     def _fill_budget(self) -> None:
@@ -336,7 +495,7 @@ class CalibrationSession:
         budget = self.settings.selector.max_frames - len(self.views)
         if budget <= 0 or not self._reserve:
             return
-        if self._information is None:  # fewer frames than the incremental solve waits for
+        if self._information is None or len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:  # no solve yet
             try:
                 raw = solve(self.views, self.image_size, self.working_model)
             except CalibrationError:
@@ -354,7 +513,7 @@ class CalibrationSession:
         information = self._information
         added: list[View] = []
         while candidates and len(added) < budget:
-            gains = [information_gain(information, Ji, Jp, weight=self._pixel_weight) for _v, Ji, Jp in candidates]
+            gains = [information_gain(information, Ji, Jp, weight=self._error_weight) for _v, Ji, Jp in candidates]
             best = int(np.argmax([g for _S, g in gains]))
             if gains[best][1] < _MIN_FILL_GAIN:
                 break
@@ -363,12 +522,43 @@ class CalibrationSession:
         self.budget_fill = (len(added), len(self._reserve))
         self.views = sorted(self.views + added, key=lambda v: v.frame_index)
 
+    def _look_alike_groups(self, views: Sequence[View], camera: CameraModel) -> list[int]:
+        """Group number per view: frames showing the board at nearly the same place, size and tilt."""
+        looks = []
+        for view in views:
+            det = _detection_of(view)
+            pose = estimate_pose(det, camera, self.geometry.centre_m)
+            looks.append(None if pose is None else accepted_view(view.frame_index, det, pose))
+        return look_alike_groups(looks, self.settings.selector, float(np.hypot(*self.image_size)))
+
+    def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:
+        """The final covariance with each hold's look-alike frames counted for what they add.
+
+        The solve uses every frame; its covariance would treat them as independent. How much
+        look-alikes share is measured from their residuals (`robust.look_alike_correlation`):
+        on the closed-loop simulator at 1x supersampling they shared ~half (counting them as
+        independent put the true error at 1.5-2x E), on 2x-supersampled renders far less.
+        """
+        groups = self._look_alike_groups(calibration.views, calibration.camera)
+        if len(set(groups)) == len(groups):
+            return calibration
+        rho = look_alike_correlation(calibration.views, calibration.residuals_px, groups)
+        views = tuple(replace(v, information_weight=w)
+                      for v, w in zip(calibration.views, look_alike_weights(groups, rho), strict=True))
+        noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
+                               n_params=len(calibration.intrinsic_names), n_views=len(views))
+        covariance = intrinsic_covariance(calibration.camera, views, calibration.rvecs, calibration.tvecs, sigma_px=noise)
+        self.look_alike_correlation = rho
+        return replace(calibration, views=views, intrinsic_covariance=covariance)
+
     def _final_coverage(self, calibration: Calibration) -> CoverageMap:
-        """The coverage map again, with tilts and distances from the final solve's poses."""
-        coverage = CoverageMap(self.image_size, self.selector.coverage.requirements)
+        """The coverage map again, with tilts and ranges from the final solve's intrinsics."""
+        live = self.selector.coverage
+        coverage = CoverageMap(self.image_size, live.requirements, ranges=ranges_for(calibration.camera, self.geometry),
+                               reachable=live.reachable)
         for view in calibration.views:
-            det = Detection(view.image_points_px.astype(np.float32), view.ids, view.object_points_m.astype(np.float32), np.zeros(0, np.int32))
-            pose = estimate_pose(det, calibration.camera)
+            det = _detection_of(view)
+            pose = estimate_pose(det, calibration.camera, self.geometry.centre_m)
             coverage.add(coverage.contribution(det, pose), pose.footprint if pose else None)
         return coverage
 

@@ -39,8 +39,10 @@ import rerun as rr
 from calibcoach.app import viewer_blueprint as paths
 from calibcoach.app.session import FrameOutcome, SessionResult
 from calibcoach.coverage.grid import DISTANCE_CELLS, TILT_CELLS, CoverageMap
+from calibcoach.coverage.guidance import Target
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibcoachError
+from calibcoach.drivers.lens import CameraModel
 
 MODES = ("web", "native", "none")
 PREVIEW_MAX_WIDTH = 960  # px: enough to judge focus and corners, small enough for ~30 fps over the wire
@@ -104,6 +106,24 @@ def _preview_factor(width: int) -> int:
     ~2.7 ms, which made logging the largest per-frame cost after detection.
     """
     return max(1, -(-width // PREVIEW_MAX_WIDTH))
+
+
+def ghost_outline_px(camera: CameraModel, target: Target, per_edge: int = 12) -> np.ndarray:
+    """(4 * per_edge + 1, 2) float64 closed outline of the board at the target pose, in image pixels.
+
+    The outline's four corners are the target's `outline_px`; points along the edges are projected
+    too (through `camera`, the intrinsics the target was made with) so the ghost bends like the board.
+    """
+    R, _ = cv2.Rodrigues(np.asarray(target.rvec, np.float64).reshape(3))
+    corners = np.asarray(target.outline_px, np.float64)
+    rays = camera.unproject(corners)
+    # the corners' board-frame positions from their camera-frame points on the target's plane
+    n, d = R[:, 2], float(R[:, 2] @ np.asarray(target.tvec_m, np.float64))
+    pts = rays * (d / (rays @ n))[:, None]
+    s = np.linspace(0.0, 1.0, per_edge, endpoint=False)[:, None]
+    edges = [pts[k] + s * (pts[(k + 1) % 4] - pts[k]) for k in range(4)]
+    outline = camera.project(np.concatenate(edges + [pts[:1]]))
+    return np.where(np.isfinite(outline), outline, np.nan)
 
 
 def _fate_colour(reason: str) -> tuple[int, int, int]:
@@ -266,14 +286,14 @@ class Viewer:
         self._last_log_s = now
         # Each log call costs ~0.1 ms; the progress values change only when a frame is kept or a solve
         # ran, and a time series holds its last value in between.
-        progress = (p.frames_accepted, round(p.coverage, 4), p.uncertainty_p95_px)
+        progress = (p.frames_accepted, round(p.coverage, 4), p.expected_error_px)
         if progress != self._last_progress:
             self._last_progress = progress
             rec.log(paths.ACCEPTED, rr.Scalars(float(p.frames_accepted)))
             rec.log(paths.COVERAGE_PCT, rr.Scalars(100.0 * p.coverage))
-            if p.uncertainty_p95_px is not None:  # the target beside every p95 point draws as a line
-                rec.log(paths.UNCERTAINTY_P95, rr.Scalars(p.uncertainty_p95_px))
-                rec.log(paths.UNCERTAINTY_TARGET, rr.Scalars(p.uncertainty_target_px))
+            if p.expected_error_px is not None and p.target_px is not None:  # the target beside every E point: a line
+                rec.log(paths.EXPECTED_ERROR, rr.Scalars(p.expected_error_px))
+                rec.log(paths.ERROR_TARGET, rr.Scalars(p.target_px))
 
     def _log_pose_axes(self, outcome: FrameOutcome, scale: float) -> None:
         """The board's x (red), y (green) and z (blue, towards the camera) axes from the pose estimate."""
@@ -312,25 +332,35 @@ class Viewer:
         self.recording.log(paths.TILT_DISTANCE, rr.BarChart(np.asarray(bars, np.float32)))
 
     def _log_guidance(self, outcome: FrameOutcome, size: tuple[int, int], scale: float) -> None:
-        """The ghost outline where the board should go, and the sentence, when either changed."""
+        """The ghost board where the board should go, the sentence beside it, and an arrow to it.
+
+        The ghost is the chessboard's outline at the target pose, projected through the current
+        intrinsics (perspective and tilt as the person will see the board there), drawn along
+        its edges so a fisheye bows it as it bows the board; it is logged when the target changes.
+        The arrow runs from the board's centre now to the target's, on every frame with a pose.
+        """
         g = outcome.guidance
-        key = (g.sentence, g.target_centre_px, g.target_footprint)
-        if key == self._last_guidance:
-            return
-        self._last_guidance = key
+        target = g.target
         rec = self.recording
-        rec.log(paths.GUIDANCE, rr.TextDocument(f"## {g.sentence}", media_type=rr.MediaType.MARKDOWN))
-        if g.target_centre_px is None:
-            rec.log(paths.TARGET, rr.Clear(recursive=False))
+        key = (g.sentence, None if target is None else tuple(np.round(target.outline_px.reshape(-1), 1)))
+        if key != self._last_guidance:
+            self._last_guidance = key
+            rec.log(paths.GUIDANCE, rr.TextDocument(f"## {g.sentence}\n\n{g.why}", media_type=rr.MediaType.MARKDOWN))
+            if target is None:
+                rec.log(paths.TARGET, rr.Clear(recursive=False))
+            else:
+                ghost = ghost_outline_px(outcome.camera, target) * scale
+                rec.log(paths.TARGET, rr.LineStrips2D([ghost.astype(np.float32)], colors=[(0, 200, 255)], radii=3.0,
+                                                      labels=[g.sentence], show_labels=True, draw_order=10.0))
+        if target is None or outcome.pose is None:
+            rec.log(paths.TARGET_ARROW, rr.Clear(recursive=False))
             return
-        w, h = size
-        side = (g.target_footprint if g.target_footprint is not None else 0.25) * np.sqrt(w * h) * scale
-        cx, cy = g.target_centre_px[0] * scale, g.target_centre_px[1] * scale
-        half = side / 2
-        outline = [[cx - half, cy - half], [cx + half, cy - half], [cx + half, cy + half],
-                   [cx - half, cy + half], [cx - half, cy - half]]
-        rec.log(paths.TARGET, rr.LineStrips2D([outline], colors=[(0, 200, 255)], radii=3.0,
-                                              labels=["put the board here"], draw_order=10.0))
+        here = outcome.board_centre_px
+        if here is None:
+            return
+        there = np.asarray(target.centre_px, np.float64)
+        rec.log(paths.TARGET_ARROW, rr.Arrows2D(origins=[here * scale], vectors=[(there - here) * scale],
+                                                colors=[(0, 200, 255)], radii=2.0, draw_order=11.0))
 
     # --- the end -------------------------------------------------------------------------------
     def log_result(self, result: SessionResult, out_dir: Path) -> None:
@@ -402,7 +432,8 @@ def _verdict_markdown(result: SessionResult) -> str:
         f"- **Model:** {cal.camera.model} ({result.model_choice.reason})" if result.model_choice.reason
         else f"- **Model:** {cal.camera.model}",
         f"- **Image:** {w}x{h}",
-        f"- **Uncertainty p95 (covered region):** {result.uncertainty.p95_covered_px:.3f} px",
+        f"- **Expected projection error E (covered region):** {result.uncertainty.expected_error_px:.3f} px "
+        f"(target {result.target_px:.3f} px; corner noise {result.noise_px:.3f} px)",
         f"- **Coverage:** {100 * result.coverage.completeness():.0f}%",
         "",
         "## Why",
@@ -415,7 +446,6 @@ def _verdict_markdown(result: SessionResult) -> str:
 def _render_picture(name: str, result: SessionResult) -> np.ndarray | None:
     """Draw one report picture the report did not write (same functions as the report)."""
     from calibcoach.app.outputs import pictures
-    from calibcoach.app.solve.verdict import uncertainty_target_px
 
     cal = result.calibration
     size = cal.camera.image_size
@@ -426,7 +456,7 @@ def _render_picture(name: str, result: SessionResult) -> np.ndarray | None:
         return pictures.residual_map_picture(size, np.concatenate([v.image_points_px for v in cal.views]),
                                              np.concatenate(cal.residuals_px))
     if name == "uncertainty.png":
-        return pictures.uncertainty_picture(result.uncertainty, target_px=uncertainty_target_px(size), image_size=size)
+        return pictures.uncertainty_picture(result.uncertainty, target_px=result.target_px, image_size=size)
     if name == "per_frame_errors.png":
         return pictures.per_frame_error_picture([v.frame_name or str(v.frame_index) for v in cal.views],
                                                 cal.per_view_rms_px)

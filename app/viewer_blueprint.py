@@ -16,7 +16,8 @@ import rerun.blueprint as rrb
 CAMERA = "camera"
 IMAGE = "camera/image"
 CORNERS = "camera/corners"
-TARGET = "camera/target"
+TARGET = "camera/target"  # the ghost board: the target pose's outline in perspective, with the sentence
+TARGET_ARROW = "camera/target_arrow"  # from where the board is now to where it should go
 COVERAGE = "camera/coverage"
 GUIDANCE = "guidance"
 DECISIONS = "log/decisions"
@@ -25,8 +26,8 @@ COVERAGE_PCT = "progress/coverage_pct"
 AXES = "camera/axes"
 PROCESSED_FPS = "progress/processed_fps"
 TILT_DISTANCE = "progress/tilt_distance"  # bars: frontal, top/bottom/left/right away, steep x/y, far, mid, near
-UNCERTAINTY_P95 = "progress/uncertainty_p95_px"
-UNCERTAINTY_TARGET = "progress/uncertainty_target_px"
+EXPECTED_ERROR = "progress/expected_error_px"
+ERROR_TARGET = "progress/error_target_px"
 REPORT = "report"
 VERDICT = "report/verdict"
 PER_FRAME_RMS = "report/per_frame_rms_px"
@@ -52,7 +53,7 @@ def session_blueprint() -> rrb.Blueprint:
             rrb.TextDocumentView(origin=GUIDANCE, name="Next move"),
             rrb.TimeSeriesView(origin="progress", contents=[f"+ /{ACCEPTED}", f"+ /{COVERAGE_PCT}", f"+ /{PROCESSED_FPS}"],
                                name="Frames kept / coverage % / processed fps"),
-            rrb.TimeSeriesView(origin="progress", contents=[f"+ /{UNCERTAINTY_P95}", f"+ /{UNCERTAINTY_TARGET}"],
+            rrb.TimeSeriesView(origin="progress", contents=[f"+ /{EXPECTED_ERROR}", f"+ /{ERROR_TARGET}"],
                                name="Uncertainty p95 vs target, px"),
             rrb.BarChartView(origin=TILT_DISTANCE, name="Tilts: frontal, top/bottom/left/right away, steep x/y | far, mid, near"),
             rrb.TextLogView(origin=DECISIONS, name="Decisions"),

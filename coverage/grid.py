@@ -1,12 +1,15 @@
-"""The coverage map: which image regions, tilts and distances the accepted frames have shown.
+"""The coverage map: which image regions, tilts and ranges the accepted frames have shown.
 
 Three axes, each a set of cells with a requirement:
 - image region: a grid over the image (corners and edges are where distortion lives, so the outer
-  ring weighs more); a cell is met when enough corner observations have landed in it;
+  ring weighs more); a cell is met when enough corner observations have landed in it. Only cells
+  a board can be seen in are required: `reachable` marks them (from the candidate poses'
+  virtual views, so a fisheye's black corners, beyond 90 deg off axis, are not asked for);
 - tilt: frontal, each of the four tilt directions beyond 20 deg, and a steep view (>= 35 deg) about
   each axis -- tilted views separate focal length from distance, which frontal views cannot;
-- distance: the board's footprint in the image (sqrt of its corners' hull area over the image area):
-  far (< 0.18), mid and near (>= 0.30).
+- range: the distance from the camera to the board's centre, from its pose -- near and far as
+  `candidates.Ranges` defines them for this board and lens (mid-range views count for the rest). Not the visible footprint: a board
+  held close at the image edge shows few corners but is still near, as the person holding it knows.
 Completeness is the weighted share of requirements met; `gain` says how much a candidate frame
 would add, which is what frame selection is built on.
 """
@@ -17,16 +20,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibcoach.coverage.candidates import Ranges
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.pose import BoardPose
 
 TILT_STEER_DEG = 20.0  # a view counts for a tilt direction from here on
 TILT_STEEP_DEG = 35.0  # "steep" views: the method asks for 30-60 deg
-FAR_FOOTPRINT = 0.18  # sqrt(area fraction of the corners' hull) below which the board is "far" (~30% of a 16:9 image height)
-NEAR_FOOTPRINT = 0.30  # and from which it is "near" (an 8x11 board filling ~2/3 of the image height)
 TILT_DIRECTIONS = ("top_away", "bottom_away", "left_away", "right_away")
 TILT_CELLS = ("frontal", *TILT_DIRECTIONS, "steep_x", "steep_y")
-DISTANCE_CELLS = ("far", "mid", "near")
+# Ranges required: far and near (each counted from its limit, `Ranges.far_min_m` / `near_max_m`).
+# Mid-range views count for regions and tilts but are no requirement of their own: what separates
+# focal length from distance is the spread between near and far, and a person's "near" and "far"
+# differ from calibcoach's representative ranges by more than the mid band is wide.
+DISTANCE_CELLS = ("far", "near")
 TILT_HISTOGRAM_EDGES_DEG = (-90.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 90.0)
 _AXIS_WEIGHTS = {"region": 0.5, "tilt": 0.3, "distance": 0.2}
 
@@ -47,6 +53,7 @@ class Contribution:
     distance_cell: str | None
     tilt_x_deg: float
     tilt_y_deg: float
+    has_pose: bool = True  # False: the frame's pose was unknown, so tilts and range are not counted
 
 
 def region_grid_shape(image_size: tuple[int, int]) -> tuple[int, int]:
@@ -61,10 +68,16 @@ def region_grid_shape(image_size: tuple[int, int]) -> tuple[int, int]:
 class CoverageMap:
     """Accumulates accepted frames' contributions; says what is complete and what is missing."""
 
-    def __init__(self, image_size: tuple[int, int], requirements: CoverageRequirements | None = None) -> None:
+    def __init__(self, image_size: tuple[int, int], requirements: CoverageRequirements | None = None, *,
+                 ranges: Ranges, reachable: np.ndarray | None = None) -> None:
         self.image_size = image_size
         self.requirements = requirements or CoverageRequirements()
+        self.ranges = ranges
         self.rows, self.cols = region_grid_shape(image_size)
+        # (rows, cols) bool: cells a board can be seen in on this lens; all of them until told otherwise
+        self.reachable = np.ones((self.rows, self.cols), bool) if reachable is None else np.asarray(reachable, bool)
+        if self.reachable.shape != (self.rows, self.cols):
+            raise ValueError(f"reachable must be ({self.rows}, {self.cols}), got {self.reachable.shape}")
         self.region_counts = np.zeros((self.rows, self.cols))  # (rows, cols) corner observations
         self.tilt_counts = dict.fromkeys(TILT_CELLS, 0)
         self.distance_counts = dict.fromkeys(DISTANCE_CELLS, 0)
@@ -75,7 +88,8 @@ class CoverageMap:
         ring[0, :] = ring[-1, :] = ring[:, 0] = ring[:, -1] = 2.0  # edges: twice the weight of the inside
         for r, c in ((0, 0), (0, -1), (-1, 0), (-1, -1)):
             ring[r, c] = 3.0  # corners: where distortion is strongest and hardest to reach
-        self.region_weights = ring / ring.sum()
+        self._ring = ring
+        self.region_weights = np.where(self.reachable, ring, 0.0) / max(float(np.where(self.reachable, ring, 0.0).sum()), 1e-12)
 
     # --- what a frame would add ---------------------------------------------------------------
     def contribution(self, detection: Detection, pose: BoardPose | None) -> Contribution:
@@ -85,7 +99,7 @@ class CoverageMap:
         counts = np.zeros((self.rows, self.cols))
         np.add.at(counts, (rows, cols), 1.0)
         if pose is None:
-            return Contribution(counts, (), None, 0.0, 0.0)
+            return Contribution(counts, (), None, 0.0, 0.0, has_pose=False)
         cells: list[str] = []
         tx, ty = pose.tilt_x_deg, pose.tilt_y_deg
         if pose.tilt_deg < 15.0:
@@ -102,9 +116,8 @@ class CoverageMap:
             cells.append("steep_x")
         if abs(ty) >= TILT_STEEP_DEG:
             cells.append("steep_y")
-        f = pose.footprint
-        distance = "far" if f < FAR_FOOTPRINT else "near" if f >= NEAR_FOOTPRINT else "mid"
-        return Contribution(counts, tuple(cells), distance, tx, ty)
+        cell = self.ranges.cell(pose.distance_m)
+        return Contribution(counts, tuple(cells), cell if cell in DISTANCE_CELLS else None, tx, ty)
 
     def gain(self, c: Contribution, *, region_only: bool = False) -> float:
         """How much of the unmet requirements this frame would fill, 0..1 of the whole map.
@@ -133,6 +146,7 @@ class CoverageMap:
             self.tilt_counts[cell] += 1
         if c.distance_cell is not None:
             self.distance_counts[c.distance_cell] += 1
+        if c.has_pose:
             self.tilt_x_history.append(c.tilt_x_deg)
             self.tilt_y_history.append(c.tilt_y_deg)
         if footprint is not None:
@@ -142,6 +156,10 @@ class CoverageMap:
     def region_fill(self) -> np.ndarray:
         """(rows, cols) float64 in 0..1: how far each region cell is towards its requirement."""
         return np.minimum(self.region_counts / self.requirements.corners_per_region_cell, 1.0)
+
+    def region_met(self) -> np.ndarray:
+        """(rows, cols) bool: cells that meet their requirement or need none (no board can be seen there)."""
+        return (self.region_fill() >= 1.0) | ~self.reachable
 
     def axis_completeness(self) -> dict[str, float]:
         req = self.requirements
@@ -161,7 +179,8 @@ class CoverageMap:
     def missing_regions(self) -> list[tuple[int, int, float]]:
         """(row, col, fill) of region cells below their requirement, the most important first."""
         fill = self.region_fill()
-        cells = [(r, c, float(fill[r, c])) for r in range(self.rows) for c in range(self.cols) if fill[r, c] < 1.0]
+        cells = [(r, c, float(fill[r, c])) for r in range(self.rows) for c in range(self.cols)
+                 if fill[r, c] < 1.0 and self.reachable[r, c]]
         return sorted(cells, key=lambda t: (-(1.0 - t[2]) * self.region_weights[t[0], t[1]], t[0], t[1]))
 
     def missing_tilts(self) -> list[str]:
@@ -188,6 +207,8 @@ class CoverageMap:
             "region_grid": [self.rows, self.cols],
             "region_fill": np.round(self.region_fill(), 3).tolist(),
             "region_corner_counts": self.region_counts.astype(int).tolist(),
+            "region_reachable": self.reachable.tolist(),
+            "range_limits_m": {"near_max": round(self.ranges.near_max_m, 3), "far_min": round(self.ranges.far_min_m, 3)},
             "tilt_views": dict(self.tilt_counts),
             "distance_views": dict(self.distance_counts),
             "tilt_histogram_edges_deg": list(TILT_HISTOGRAM_EDGES_DEG),

@@ -1,8 +1,11 @@
-"""Guidance in words: where and how to hold the board next.
+"""Guidance in words: one concrete pose to hold next, said so that a person can carry it out.
 
-The most useful missing requirement of each axis is combined into one instruction a person can
-carry out in one move ("move the board to the top-left corner, tilt it about 40 deg so its right
-edge is further away, and bring it closer"), plus a target a viewer can draw as a ghost outline.
+Every instruction names where in the image the board's centre goes, which edge to tilt away and
+by how much (or to face the camera), and how far away to hold it. The words are derived from the
+target pose alone, so they cannot disagree with the ghost board the viewer draws from the same
+target: `position_words` names the zone of the image the centre falls in (the image split into
+five columns and three rows, every zone with a name of its own), `tilt_words` the signs and size
+of the two tilts, and the range is said in metres. Short enough to read at arm's length.
 """
 
 from __future__ import annotations
@@ -11,93 +14,80 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.grid import CoverageMap
+COLUMN_WORDS = ("left edge", "left", "centre", "right", "right edge")  # x zones of a fifth of the width each
+ROW_WORDS = ("top", "middle", "bottom")  # y zones of a third of the height each
+FRONTAL_DEG = 10.0  # tilts below this are said as "facing the camera"
 
-_TILT_WORDS = {
-    "frontal": ("hold it facing the camera", 0.0, 0.0),
-    "top_away": ("tilt it about 30 deg so its top edge is further away (turn it about the horizontal axis)", 30.0, 0.0),
-    "bottom_away": ("tilt it about 30 deg so its bottom edge is further away (turn it about the horizontal axis)", -30.0, 0.0),
-    "right_away": ("tilt it about 30 deg so its right edge is further away (turn it about the vertical axis)", 0.0, 30.0),
-    "left_away": ("tilt it about 30 deg so its left edge is further away (turn it about the vertical axis)", 0.0, -30.0),
-    "steep_x": ("tilt it steeply, about 45 deg, so its top edge is further away", 45.0, 0.0),
-    "steep_y": ("tilt it steeply, about 45 deg, so its left edge is further away", 0.0, -45.0),
-}
-_DISTANCE_WORDS = {
-    "near": ("bring it closer, so it fills about three quarters of the image height", 0.38),
-    "far": ("move it further away, so it fills about a quarter of the image height", 0.13),
-    "mid": ("hold it at a middle distance, so it fills about half the image height", 0.24),
-}
+
+@dataclass(frozen=True, slots=True)
+class Target:
+    """Where the board should go next: the board pose in the camera frame and what a person sees of it."""
+
+    centre_px: tuple[float, float]  # where the board's centre should show in the image
+    rvec: np.ndarray  # (3,) float64 Rodrigues, T_cam_board (OpenCV's board origin, docs/conventions.md)
+    tvec_m: np.ndarray  # (3,) float64 metres, T_cam_board
+    tilt_x_deg: float  # against the line of sight: top edge away = positive
+    tilt_y_deg: float  # right edge away = positive
+    distance_m: float  # camera to the board's centre
+    outline_px: np.ndarray  # (4, 2) float64 the chessboard's outer corners at that pose, current intrinsics
 
 
 @dataclass(frozen=True, slots=True)
 class Guidance:
-    """The next instruction and where the board should go."""
+    """The next instruction; `target` is None only when the capture is done."""
 
     sentence: str
-    target_centre_px: tuple[float, float] | None  # where the board's centre should go
-    target_footprint: float | None  # sqrt(area fraction) the board should cover, 0..1
-    target_tilt_x_deg: float  # top edge away = positive
-    target_tilt_y_deg: float  # right edge away = positive
-    coverage_complete: bool
+    target: Target | None
+    why: str = ""  # what the target is for, e.g. "cuts the expected error by 9%"
 
 
-def region_words(row: int, col: int, rows: int, cols: int) -> str:
-    """'the top-left corner', 'the bottom edge', 'the centre', ... for a region grid cell."""
-    vertical = "top" if row == 0 else "bottom" if row == rows - 1 else ""
-    horizontal = "left" if col == 0 else "right" if col == cols - 1 else ""
-    if vertical and horizontal:
-        return f"the {vertical}-{horizontal} corner of the image"
-    if vertical:
-        side = "" if cols % 2 == 1 and col == cols // 2 else (" (left half)" if col < cols / 2 else " (right half)")
-        return f"the {vertical} edge of the image{side}"
-    if horizontal:
-        return f"the {horizontal} edge of the image"
-    return "the centre of the image"
+def zone(centre_px: tuple[float, float], image_size: tuple[int, int]) -> tuple[int, int]:
+    """(column 0..4, row 0..2) of the image zone a pixel falls in."""
+    w, h = image_size
+    col = int(np.clip(np.floor(centre_px[0] / w * len(COLUMN_WORDS)), 0, len(COLUMN_WORDS) - 1))
+    row = int(np.clip(np.floor(centre_px[1] / h * len(ROW_WORDS)), 0, len(ROW_WORDS) - 1))
+    return col, row
 
 
-def next_guidance(cmap: CoverageMap) -> Guidance:
-    """One instruction that fills the most useful missing region, tilt and distance at once."""
-    w, h = cmap.image_size
-    regions = cmap.missing_regions()
-    tilts = cmap.missing_tilts()
-    distances = cmap.missing_distances()
-    if not regions and not tilts and not distances:
-        return Guidance(
-            "Coverage is complete. Keep moving the board to new places and angles, holding it still each time, "
-            "until the uncertainty reaches its target.",
-            None, None, 0.0, 0.0, True,
-        )
-    parts: list[str] = []
-    centre: tuple[float, float] | None = None
-    if regions:
-        row, col, _fill = regions[0]
-        centre = ((col + 0.5) / cmap.cols * w, (row + 0.5) / cmap.rows * h)
-        parts.append(f"move the board to {region_words(row, col, cmap.rows, cmap.cols)}")
-    tilt_x = tilt_y = 0.0
-    if tilts:
-        words, tilt_x, tilt_y = _TILT_WORDS[tilts[0]]
-        parts.append(words)
-    footprint = None
-    if distances:
-        words, footprint = _DISTANCE_WORDS[distances[0]]
-        parts.append(words)
-    sentence = _join(parts)
-    if regions and footprint is not None and footprint > 0.3 and centre is not None:
-        sentence += " Part of the board may leave the image: that is fine, the corners that stay count."
-    return Guidance(sentence, centre, footprint, float(tilt_x), float(tilt_y), False)
+def position_words(centre_px: tuple[float, float], image_size: tuple[int, int]) -> str:
+    """'the top-left corner', 'the upper left', 'the left edge', 'the centre', ... for a pixel.
+
+    Example:
+        >>> position_words((100, 60), (1280, 720)), position_words((640, 360), (1280, 720))
+        ('the top-left corner', 'the centre')
+    """
+    col, row = zone(centre_px, image_size)
+    vertical, horizontal = ROW_WORDS[row], COLUMN_WORDS[col]
+    if horizontal.endswith("edge") and vertical != "middle":
+        return f"the {vertical}-{horizontal.split()[0]} corner"
+    if vertical == "middle":
+        return {"centre": "the centre", "left": "left of centre", "right": "right of centre"}.get(horizontal, f"the {horizontal}")
+    if horizontal == "centre":
+        return f"the {vertical} centre"
+    return f"the {'upper' if vertical == 'top' else 'lower'} {horizontal}"
 
 
-def _join(parts: list[str]) -> str:
+def tilt_words(tilt_x_deg: float, tilt_y_deg: float) -> str:
+    """'facing the camera', 'top edge away ~30°', 'top edge ~30° and right edge ~20° away', ..."""
+    parts = []
+    if abs(tilt_x_deg) >= FRONTAL_DEG:
+        parts.append(("top" if tilt_x_deg > 0 else "bottom", abs(tilt_x_deg)))
+    if abs(tilt_y_deg) >= FRONTAL_DEG:
+        parts.append(("right" if tilt_y_deg > 0 else "left", abs(tilt_y_deg)))
+    if not parts:
+        return "facing the camera"
     if len(parts) == 1:
-        text = parts[0]
-    else:
-        text = ", ".join(parts[:-1]) + ", and " + parts[-1]
-    return text[0].upper() + text[1:] + ", then hold it still."
+        return f"{parts[0][0]} edge tilted away ~{_round_deg(parts[0][1])}°"
+    (a, da), (b, db) = parts
+    return f"{a} edge tilted away ~{_round_deg(da)}° and {b} edge ~{_round_deg(db)}°"
 
 
-def worst_uncertainty_words(sigma_px: np.ndarray, rows: int, cols: int) -> str:
-    """Name the region of an uncertainty map (GY, GX) with the highest uncertainty."""
-    gy, gx = np.unravel_index(int(np.argmax(sigma_px)), sigma_px.shape)
-    row = min(int(gy / sigma_px.shape[0] * rows), rows - 1)
-    col = min(int(gx / sigma_px.shape[1] * cols), cols - 1)
-    return region_words(row, col, rows, cols)
+def sentence_for(target: Target, image_size: tuple[int, int]) -> str:
+    """The instruction for a target, e.g. 'Board to the top-left corner, top edge tilted away ~30°, 0.6 m away.'"""
+    where = position_words(target.centre_px, image_size)
+    to = "to " if not where.startswith(("left of", "right of")) else ""
+    return f"Board {to}{where}, {tilt_words(target.tilt_x_deg, target.tilt_y_deg)}, {target.distance_m:.1f} m away."
+
+
+def _round_deg(value: float) -> int:
+    return int(5 * round(value / 5))

@@ -25,7 +25,7 @@ class BoardPose:
     tilt_deg: float  # angle between the board normal and the line of sight to the board, 0 = facing the camera
     tilt_x_deg: float  # about the image x axis: positive = top edge further away (see docs/conventions.md)
     tilt_y_deg: float  # about the image y axis: positive = right edge further away
-    distance_m: float  # camera to the visible corners' centroid
+    distance_m: float  # camera to the board's centre (or the visible corners' centroid; see estimate_pose)
     centre_px: np.ndarray  # (2,) float64 centroid of the detected corners
     footprint: float  # sqrt(hull area / image area) of the detected corners, 0..1 ("board size in the image")
     fit_rms_px: float  # how well the board plane fits the corners with these intrinsics
@@ -37,8 +37,13 @@ def corner_footprint(corners_px: np.ndarray, image_size: tuple[int, int]) -> flo
     return float(np.sqrt(max(cv2.contourArea(hull), 0.0) / (image_size[0] * image_size[1])))
 
 
-def estimate_pose(detection: Detection, camera: CameraModel) -> BoardPose | None:
-    """T_cam_board from one detection with fixed intrinsics; None when the corners do not fit a plane."""
+def estimate_pose(detection: Detection, camera: CameraModel, board_centre_m: np.ndarray | None = None) -> BoardPose | None:
+    """T_cam_board from one detection with fixed intrinsics; None when the corners do not fit a plane.
+
+    Tilt and distance are measured to `board_centre_m` (3,), the board's centre in its own frame,
+    when given (a person's sense of where the board is, also for partial views), else to the
+    visible corners' centroid.
+    """
     if detection.corner_count < 4:
         return None
     rays = camera.unproject(detection.corners_px)
@@ -53,7 +58,8 @@ def estimate_pose(detection: Detection, camera: CameraModel) -> BoardPose | None
     projected = camera.project(detection.object_points_m, rvec, tvec)
     fit_rms = float(np.sqrt(np.mean(np.sum((projected - detection.corners_px) ** 2, axis=1))))
     R, _ = cv2.Rodrigues(rvec)
-    centre_cam = (R @ detection.object_points_m.astype(np.float64).T).T.mean(axis=0) + tvec
+    centre_board = detection.object_points_m.astype(np.float64).mean(axis=0) if board_centre_m is None else board_centre_m
+    centre_cam = R @ np.asarray(centre_board, np.float64).reshape(3) + tvec
     tilt, tilt_x, tilt_y = tilt_against_sight_deg(R[:, 2], centre_cam)
     return BoardPose(
         rvec=rvec,

@@ -130,12 +130,12 @@ class FrameSelector:
         *,
         squares_x: int,
         settings: SelectorSettings | None = None,
-        coverage: CoverageMap | None = None,
+        coverage: CoverageMap,
     ) -> None:
         self.image_size = image_size
         self.settings = settings or SelectorSettings()
         self.squares_x = squares_x
-        self.coverage = coverage or CoverageMap(image_size)
+        self.coverage = coverage
         self.accepted: list[AcceptedView] = []
         self.counts: dict[str, int] = dict.fromkeys(("accepted", *REJECT_REASONS), 0)
         self._diag = float(np.hypot(*image_size))
@@ -175,9 +175,16 @@ class FrameSelector:
         motion_px_s: float | None,
         blur_px: float | None,
         uncertainty_gain: Callable[[], float] | None = None,
+        uncertainty_needed: float | None = None,
         just_appeared: bool = False,
     ) -> tuple[Decision, Contribution | None]:
         """Full decision for one frame; the caller commits accepted frames with `commit`.
+
+        `uncertainty_gain` returns the relative cut of the expected error E the frame would bring;
+        a frame without new coverage is kept when it reaches `uncertainty_needed` (the session
+        asks for half of what its best target pose would bring, so a frame that does what the
+        guidance asked is kept). Without it: 1.5 / (frames kept + 1), clearly more than an
+        average kept frame's share.
 
         Moving and softly blurred frames are rejected for the live capture (the person should hold
         still), but keep a `quality` < 1: the weight their corners deserve if the final solve has
@@ -210,21 +217,20 @@ class FrameSelector:
             return Decision(True, "accepted", f"usable photo, adds {cov_gain * 100:.1f}% coverage", cov_gain), contribution
         twin = self._duplicate_of(detection, pose)
         if twin is not None:
-            # a look-alike of a kept frame mostly re-counts the same corners in the same cells: only
-            # its image-region gain counts, and it must be clearly more than a new view needs
-            cov_gain = self.coverage.gain(contribution, region_only=True)
-        if cov_gain >= s.min_coverage_gain * (1.0 if twin is None else 5.0):
+            # A look-alike of a kept frame re-counts the same corners in the same cells, and a repeat
+            # of a view cuts the predicted error about as much as a new one would (averaging noise),
+            # while it weights one pose over the others: twenty look-alikes are worse than ten
+            # diverse frames. It is never kept live; the final solve may take it from the reserve.
+            return Decision(False, "duplicate", f"looks like frame {twin}", cov_gain, quality=1.0), None
+        if cov_gain >= s.min_coverage_gain:
             return Decision(True, "accepted", f"adds {cov_gain * 100:.1f}% coverage", coverage_gain=cov_gain), contribution
-        # No new coverage (or a look-alike of a kept frame): keep it only if it shrinks the uncertainty
-        # clearly more than an average kept frame would (1.5 / (V + 1) of the variance), so that
-        # look-alikes stop counting as soon as the data has them.
+        # No new coverage (or a look-alike of a kept frame): keep it only if it cuts the expected
+        # error by enough; look-alikes stop counting as soon as the data has them.
         unc_gain = uncertainty_gain() if uncertainty_gain is not None else 0.0
-        needed = max(s.min_uncertainty_gain, 1.5 / (len(self.accepted) + 1))
+        needed = uncertainty_needed if uncertainty_needed is not None else max(s.min_uncertainty_gain, 1.5 / (len(self.accepted) + 1))
         if unc_gain >= needed:
-            return Decision(True, "accepted", f"shrinks uncertainty by {unc_gain * 100:.0f}%", cov_gain, unc_gain), contribution
-        if twin is not None:
-            return Decision(False, "duplicate", f"looks like frame {twin}; uncertainty -{unc_gain * 100:.1f}%", cov_gain, unc_gain), None
-        return Decision(False, "adds nothing", f"coverage +{cov_gain * 100:.2f}%, uncertainty -{unc_gain * 100:.1f}%", cov_gain, unc_gain), None
+            return Decision(True, "accepted", f"cuts the expected error by {unc_gain * 100:.0f}%", cov_gain, unc_gain), contribution
+        return Decision(False, "adds nothing", f"coverage +{cov_gain * 100:.2f}%, expected error -{unc_gain * 100:.1f}% (needs {needed * 100:.1f}%)", cov_gain, unc_gain), None
 
     def record(self, decision: Decision) -> None:
         self.counts[decision.reason] = self.counts.get(decision.reason, 0) + 1
@@ -234,23 +240,51 @@ class FrameSelector:
         if blur_px is not None and np.isfinite(blur_px):
             self._blurs.append(blur_px)
         self.coverage.add(contribution, pose.footprint if pose is not None else None)
-        centre = detection.corners_px.astype(np.float64).mean(axis=0)
-        self.accepted.append(AcceptedView(
-            frame_index, centre, pose.footprint if pose else 0.0,
-            pose.tilt_x_deg if pose else 0.0, pose.tilt_y_deg if pose else 0.0,
-        ))
+        if pose is not None:
+            self.accepted.append(accepted_view(frame_index, detection, pose))
+        else:
+            centre = detection.corners_px.astype(np.float64).mean(axis=0)
+            self.accepted.append(AcceptedView(frame_index, centre, 0.0, 0.0, 0.0))
 
     def _duplicate_of(self, detection: Detection, pose: BoardPose | None) -> int | None:
         if pose is None:
             return None
-        s = self.settings
-        centre = detection.corners_px.astype(np.float64).mean(axis=0)
+        here = accepted_view(-1, detection, pose)
         for view in self.accepted:
-            if (
-                np.linalg.norm(view.centre_px - centre) < s.duplicate_centre * self._diag
-                and abs(view.footprint - pose.footprint) < s.duplicate_footprint * max(view.footprint, 1e-6)
-                and abs(view.tilt_x_deg - pose.tilt_x_deg) < s.duplicate_tilt_deg
-                and abs(view.tilt_y_deg - pose.tilt_y_deg) < s.duplicate_tilt_deg
-            ):
+            if look_alike(view, here, self.settings, self._diag):
                 return view.frame_index
         return None
+
+
+def accepted_view(frame_index: int, detection: Detection, pose: BoardPose) -> AcceptedView:
+    """What the look-alike test compares of a frame: corner centroid, footprint, tilts."""
+    return AcceptedView(frame_index, detection.corners_px.astype(np.float64).mean(axis=0), pose.footprint,
+                        pose.tilt_x_deg, pose.tilt_y_deg)
+
+
+def look_alike(a: AcceptedView, b: AcceptedView, settings: SelectorSettings, diagonal_px: float) -> bool:
+    """Two frames show the board at nearly the same place, size and tilt (one hold, say)."""
+    s = settings
+    return bool(
+        np.linalg.norm(a.centre_px - b.centre_px) < s.duplicate_centre * diagonal_px
+        and abs(a.footprint - b.footprint) < s.duplicate_footprint * max(a.footprint, 1e-6)
+        and abs(a.tilt_x_deg - b.tilt_x_deg) < s.duplicate_tilt_deg
+        and abs(a.tilt_y_deg - b.tilt_y_deg) < s.duplicate_tilt_deg
+    )
+
+
+def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettings, diagonal_px: float) -> list[int]:
+    """A group number per frame: frames that look alike (transitively, in order) share one.
+
+    Frames without a pose (None) are a group of their own.
+    """
+    groups: list[int] = []
+    for i, here in enumerate(looks):
+        group = i
+        if here is not None:
+            for j in range(i):
+                if looks[j] is not None and look_alike(looks[j], here, settings, diagonal_px):  # type: ignore[arg-type]
+                    group = groups[j]
+                    break
+        groups.append(group)
+    return groups

@@ -41,3 +41,36 @@ def tilt_against_sight_deg(normal_cam: np.ndarray, centre_cam: np.ndarray) -> tu
     n = align_z_to(sight).T @ n
     tilt = float(np.degrees(np.arccos(np.clip(-n[2], -1.0, 1.0))))
     return tilt, float(np.degrees(np.arctan2(-n[1], -n[2]))), float(np.degrees(np.arctan2(n[0], -n[2])))
+
+
+def pose_matrix(rvec: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix of a Rodrigues vector (3,)."""
+    R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))
+    return R
+
+
+def board_centre_m(squares_x: int, squares_y: int, square_m: float) -> np.ndarray:
+    """(3,) float64 centre of a ChArUco board's chessboard area in the board frame, metres."""
+    return np.array([squares_x * square_m / 2.0, squares_y * square_m / 2.0, 0.0])
+
+
+def facing_orientation(ray: np.ndarray, tilt_x_deg: float, tilt_y_deg: float, roll_deg: float) -> np.ndarray:
+    """(3, 3) R_cam_board of a board facing the line of sight `ray` (3,), then tilted and rolled.
+
+    Rx(-tilt_x) tips the top edge away and Ry(-tilt_y) the right edge (docs/conventions.md); roll
+    turns the board in its own plane first. `tilt_against_sight_deg` measures the same angles back.
+    """
+    tx, ty, roll = np.radians([tilt_x_deg, tilt_y_deg, roll_deg])
+    return align_z_to(ray) @ pose_matrix([-tx, 0.0, 0.0]) @ pose_matrix([0.0, -ty, 0.0]) @ pose_matrix([0.0, 0.0, roll])
+
+
+def pose_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distance_m: float, *, tilt_x_deg: float = 0.0,
+                      tilt_y_deg: float = 0.0, roll_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """T_cam_board putting the board point `centre_board_m` (3,) `distance_m` away along the unit `ray` (3,).
+
+    Returns (rvec (3,), tvec (3,) metres); the board is oriented by `facing_orientation`.
+    """
+    R = facing_orientation(ray, tilt_x_deg, tilt_y_deg, roll_deg)
+    t = distance_m * np.asarray(ray, np.float64) / np.linalg.norm(ray) - R @ np.asarray(centre_board_m, np.float64)
+    rvec, _ = cv2.Rodrigues(R)
+    return rvec.reshape(3), t

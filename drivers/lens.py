@@ -224,6 +224,15 @@ def _fisheye_theta_d(D: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return theta * (1 + D[0] * t2 + D[1] * t2**2 + D[2] * t2**3 + D[3] * t2**4)
 
 
+def radial_fold(camera: CameraModel) -> float:
+    """Where `camera`'s radial profile stops increasing: beyond it the model folds back on itself.
+
+    For the fisheye the off-axis angle theta (rad, may pass pi / 2); for the others the undistorted
+    normalised radius r = |(x, y)| / z. Points beyond it are not imaged where `project` puts them.
+    """
+    return _fold_of(camera.model, tuple(camera.dist_coeffs))
+
+
 @functools.lru_cache(maxsize=64)
 def _fold_of(model: str, dist: tuple[float, ...]) -> float:
     """The fold of a model's radial profile, cached: unproject runs per frame with the same lens."""

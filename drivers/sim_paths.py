@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from calibcoach.drivers.geometry import align_z_to, tilt_against_sight_deg
+from calibcoach.drivers import geometry
+from calibcoach.drivers.geometry import facing_orientation, pose_facing_pixel, tilt_against_sight_deg
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim_render import interpolate_pose, pose_matrix
 
@@ -90,7 +91,7 @@ class _Key:
 
 def board_centre_m(spec: BoardSpec) -> np.ndarray:
     """(3,) float64 centre of the chessboard area in the board frame, metres."""
-    return np.array([spec.squares_x * spec.square_mm / 2000.0, spec.squares_y * spec.square_mm / 2000.0, 0.0])
+    return geometry.board_centre_m(spec.squares_x, spec.squares_y, spec.square_mm / 1000.0)
 
 
 def board_outline_m(spec: BoardSpec, *, per_edge: int = 12, margin_squares: float = 0.0) -> np.ndarray:
@@ -135,16 +136,6 @@ def _inside(camera: CameraModel, px: np.ndarray, margin_px: float = 0.0) -> np.n
         px[:, 1] <= h - 0.5 - margin_px)
 
 
-def _orientation(ray: np.ndarray, tilt_x_deg: float, tilt_y_deg: float, roll_deg: float) -> np.ndarray:
-    """(3, 3) R_cam_board of a board facing the line of sight `ray`, then tilted and rolled.
-
-    Rx(-tilt_x) tips the top edge away and Ry(-tilt_y) the right edge (docs/conventions.md); roll
-    turns the board in its own plane first.
-    """
-    tx, ty, roll = np.radians([tilt_x_deg, tilt_y_deg, roll_deg])
-    return align_z_to(ray) @ pose_matrix([-tx, 0.0, 0.0]) @ pose_matrix([0.0, -ty, 0.0]) @ pose_matrix([0.0, 0.0, roll])
-
-
 def place_board(
     camera: CameraModel,
     spec: BoardSpec,
@@ -164,10 +155,8 @@ def place_board(
         >>> rvec, tvec = place_board(LENSES["webcam720"], BoardSpec(), (320, 180), 0.8, tilt_x_deg=35)  # doctest: +SKIP
     """
     ray = camera.unproject(np.asarray(centre_px, np.float64).reshape(1, 2))[0]
-    R = _orientation(ray, tilt_x_deg, tilt_y_deg, roll_deg)
-    t = distance_m * ray - R @ board_centre_m(spec)
-    rvec, _ = cv2.Rodrigues(R)
-    return rvec.reshape(3), t
+    return pose_facing_pixel(ray, board_centre_m(spec), distance_m, tilt_x_deg=tilt_x_deg, tilt_y_deg=tilt_y_deg,
+                             roll_deg=roll_deg)
 
 
 def board_tilt_deg(rvec: np.ndarray, tvec: np.ndarray, spec: BoardSpec) -> tuple[float, float, float]:
@@ -244,7 +233,7 @@ def _hidden_centre(camera: CameraModel, spec: BoardSpec, distance_m: float) -> t
         angle = min(half_v + np.radians(extra_deg), np.radians(80))
         ray = np.array([0.0, np.sin(angle), np.cos(angle)])
         d = max(distance_m, (MIN_DEPTH_M + 0.2) / ray[2])  # 0.2 m: room for the tilted board's near edge
-        R = _orientation(ray, 0.0, 0.0, 0.0)
+        R = facing_orientation(ray, 0.0, 0.0, 0.0)
         centre = d * ray
         pts = outline @ R.T + (centre - R @ board_centre_m(spec))
         px, seen = image_points(camera, pts)

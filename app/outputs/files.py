@@ -306,6 +306,7 @@ def calibration_payload(
         "uncertainty": None
         if uncertainty is None
         else {
+            "expected_error_px": uncertainty.expected_error_px,
             "p95_px": uncertainty.p95_px,
             "p95_covered_px": uncertainty.p95_covered_px,
             "max_px": float(np.max(uncertainty.sigma_px)),

@@ -218,11 +218,12 @@ def uncertainty_picture(
     *,
     target_px: float,
     image_size: tuple[int, int] | None = None,
-    title: str = "Projection uncertainty (1 sigma, worst direction)",
+    title: str = "Expected projection error (RMS length of the error, px)",
 ) -> np.ndarray:
-    """Heat map of the solve's projection uncertainty, with the region the board covered outlined.
+    """Heat map of the expected projection error, with the region the board covered outlined.
 
-    The colour scale runs to max(3 x target, 2 x covered p95) so the interesting range keeps its
+    The map is sqrt(trace(J Sigma J^T)) per grid point; the headline is E, its RMS over the
+    covered region, against the stop rule's target. The colour scale runs to max(3 x target, 2 x E) so the interesting range keeps its
     contrast; values beyond are drawn at the top colour (the bar says ">="). Without `image_size`
     the image extent is taken as symmetric around the grid (grid_x.max() + grid_x.min() + 1 wide),
     which holds both for grids through the edge pixels and for cell-centred grids.
@@ -230,15 +231,15 @@ def uncertainty_picture(
     Returns:
         (H, W, 3) uint8 BGR picture, W >= 1000.
     """
-    sigma = np.asarray(map.sigma_px, np.float64)
+    sigma = np.asarray(map.error_px, np.float64)
     gx_px, gy_px = np.asarray(map.grid_x_px, np.float64), np.asarray(map.grid_y_px, np.float64)
     if sigma.shape != (gy_px.size, gx_px.size) or map.covered.shape != sigma.shape:
         raise ValueError(f"sigma_px {sigma.shape} / covered {map.covered.shape} do not match the grid ({gy_px.size}, {gx_px.size})")
     if image_size is None:
         image_size = (int(round(gx_px.max() + gx_px.min() + 1)), int(round(gy_px.max() + gy_px.min() + 1)))
-    p95_cov, p95_all, worst = map.p95_covered_px, map.p95_px, float(sigma.max())
-    met = p95_cov <= target_px
-    subtitle = f"p95 inside the covered region {fmt(p95_cov)} px (target {fmt(target_px)} px); p95 over the whole image {fmt(p95_all)} px; max {fmt(worst)} px"
+    E, p95_all, worst = map.expected_error_px, float(np.percentile(sigma, 95)), float(sigma.max())
+    met = E <= target_px
+    subtitle = f"E over the covered region {fmt(E)} px (target {fmt(target_px)} px); p95 over the whole image {fmt(p95_all)} px; max {fmt(worst)} px"
     panel = fit_panel(image_size, _LEFT, TITLE_H + 20)
     img = _canvas_for(panel, title, subtitle)
     w, h = panel.size
@@ -246,7 +247,7 @@ def uncertainty_picture(
     ys = (np.arange(h) + 0.5) / panel.scale - 0.5
     map_x, map_y = np.meshgrid(_grid_coordinates(xs, gx_px), _grid_coordinates(ys, gy_px))
     dense = cv2.remap(sigma.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR)
-    vmax = max(min(worst, max(3 * target_px, 2 * p95_cov)), 1e-9)
+    vmax = max(min(worst, max(3 * target_px, 2 * E)), 1e-9)
     img[panel.y : panel.y + h, panel.x : panel.x + w] = colourise(dense, 0.0, vmax, fade=FADE)
     covered = cv2.remap(map.covered.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR) >= 0.5
     contours, _ = cv2.findContours(covered.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -254,11 +255,11 @@ def uncertainty_picture(
         shifted = contour + np.array([panel.x, panel.y])
         cv2.polylines(img, [shifted], True, (255, 255, 255), 4, cv2.LINE_AA)
         cv2.polylines(img, [shifted], True, INK, 2, cv2.LINE_AA)
-    box = f"p95 covered = {fmt(p95_cov)} px ({'meets' if met else 'misses'} the {fmt(target_px)} px target)"
+    box = f"E = {fmt(E)} px ({'meets' if met else 'misses'} the {fmt(target_px)} px target)"
     cv2.rectangle(img, (panel.x + 10, panel.y + 10), (panel.x + 30 + text_width(box, 0.6, 2), panel.y + 44), (255, 255, 255), -1)
     put_text(img, box, (panel.x + 20, panel.y + 27), scale=0.6, thickness=2, valign="middle", color=GOOD if met else (40, 40, 200))
     pixel_frame(img, panel)
-    colour_bar(img, panel.x + w + 40, panel.y + 30, h - 40, 0.0, vmax, label="sigma [px]", fade=FADE,
+    colour_bar(img, panel.x + w + 40, panel.y + 30, h - 40, 0.0, vmax, label="error [px]", fade=FADE,
                open_top=worst > vmax, marks=((target_px, "target"),))
     legend(img, panel.x, img.shape[0] - 18, [("line", INK, "region the board was seen in (outside it the model is extrapolated)")])
     return img

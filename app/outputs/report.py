@@ -33,7 +33,6 @@ from calibcoach.app.outputs.pictures import (
 )
 from calibcoach.app.session import SessionResult
 from calibcoach.app.solve.result import View
-from calibcoach.app.solve.verdict import uncertainty_target_px
 from calibcoach.coverage.grid import (
     DISTANCE_CELLS,
     TILT_CELLS,
@@ -92,7 +91,8 @@ def write_session_outputs(
         command_line=command_line,
         lens_state=dict(source_info.controls) if lens_state is None else lens_state,
     )
-    payload["uncertainty"]["target_px"] = uncertainty_target_px(camera.image_size)
+    payload["uncertainty"]["target_px"] = result.target_px
+    payload["uncertainty"]["noise_px"] = result.noise_px
     written.append(write_calibration_json(out_dir / "calibration.json", payload))
     written.append(write_opencv_yaml(out_dir / "calibration.yaml", camera, rms_px=cal.rms_px, extra={
         "frames_used": len(cal.views),
@@ -165,7 +165,7 @@ def _pictures(out_dir: Path, result: SessionResult) -> list[Path]:
     labels = [v.frame_name or str(v.frame_index) for v in cal.views]
     paths.append(save_png(out_dir / "per_frame_errors.png", per_frame_error_picture(labels, cal.per_view_rms_px)))
     paths.append(save_png(out_dir / "uncertainty.png", uncertainty_picture(
-        result.uncertainty, target_px=uncertainty_target_px(size), image_size=size,
+        result.uncertainty, target_px=result.target_px, image_size=size,
     )))
     if result.check_image is not None:
         paths.append(save_png(out_dir / "undistorted_check.png", undistorted_check_picture(result.check_image, cal.camera)))

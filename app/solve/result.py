@@ -18,6 +18,10 @@ class View:
     ids: np.ndarray  # (N,) int32 ChArUco corner ids
     image_points_px: np.ndarray  # (N, 2) float64 detected corners
     object_points_m: np.ndarray  # (N, 3) float64 the same corners on the board, metres
+    # Share of an independent view this frame counts for in the intrinsics' covariance: look-alike
+    # frames of one hold share their pose-dependent corner errors (blur, print, light at that spot),
+    # so a group of k counts 1/k each. The solve itself uses every frame at full weight.
+    information_weight: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +71,14 @@ class UncertaintyMap:
     grid_y_px: np.ndarray  # (GY,) float64 pixel y of grid rows
     sigma_px: np.ndarray  # (GY, GX) float64 1-sigma worst-direction projection uncertainty
     covered: np.ndarray  # (GY, GX) bool grid points inside the region the board was seen in
+    error_px: np.ndarray  # (GY, GX) float64 expected length of the projection error, sqrt(trace(J Sigma J^T))
+    error_weight: np.ndarray  # (P, P) float64 W with E^2 = trace(W Sigma) over the covered points
+
+    @property
+    def expected_error_px(self) -> float:
+        """E, the headline number: RMS over the covered region of the expected projection error (px)."""
+        values = self.error_px[self.covered] if self.covered.any() else self.error_px.reshape(-1)
+        return float(np.sqrt(np.mean(values**2)))
 
     @property
     def p95_covered_px(self) -> float:

@@ -86,6 +86,38 @@ def robust_calibrate(
     return build_calibration(raw.camera, kept, raw.rvecs, raw.tvecs, dropped_frames, dropped_corners)
 
 
+def look_alike_correlation(views: Sequence[View], residuals: Sequence[np.ndarray], groups: Sequence[int]) -> float:
+    """How much of their residuals look-alike frames share: 0 = independent, 1 = the same error.
+
+    For consecutive frames of one group (one hold of the board), the residuals of the corners both
+    show are correlated as vectors: rho = sum(r_i . r_j) / sqrt(sum |r_i|^2 sum |r_j|^2). What is
+    shared -- blur, aliasing, the print or the light at that spot, a model that does not fit there
+    -- does not average out by taking more frames of the same pose, and the covariance must not
+    pretend it does. Returns 0 when no group has two frames.
+    """
+    by_group: dict[int, list[int]] = {}
+    for i, g in enumerate(groups):
+        by_group.setdefault(g, []).append(i)
+    num = den_a = den_b = 0.0
+    for members in by_group.values():
+        for a, b in zip(members, members[1:], strict=False):
+            _, ia, ib = np.intersect1d(views[a].ids, views[b].ids, return_indices=True)
+            ra, rb = residuals[a][ia], residuals[b][ib]
+            num += float(np.sum(ra * rb))
+            den_a += float(np.sum(ra * ra))
+            den_b += float(np.sum(rb * rb))
+    if den_a <= 0 or den_b <= 0:
+        return 0.0
+    return float(np.clip(num / np.sqrt(den_a * den_b), 0.0, 1.0))
+
+
+def look_alike_weights(groups: Sequence[int], correlation: float) -> list[float]:
+    """Information weight per frame: a group of k look-alikes with residual correlation rho counts
+    as 1 + (k - 1)(1 - rho) independent frames, shared equally (rho = 0: every frame counts fully)."""
+    sizes = {g: list(groups).count(g) for g in set(groups)}
+    return [(1.0 + (sizes[g] - 1) * (1.0 - correlation)) / sizes[g] for g in groups]
+
+
 def noise_sigma_px(rms_px: float, *, n_points: int, n_params: int, n_views: int) -> float:
     """Per-coordinate corner noise from a solve's RMS (per point), corrected for the fitted parameters.
 

@@ -115,7 +115,8 @@ def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.n
     """S = A - sum_v B_v C_v^-1 B_v^T, the intrinsics' information with all poses marginalised.
 
     Args:
-        camera, views, rvecs, tvecs: as for `solve_jacobian`.
+        camera, views, rvecs, tvecs: as for `solve_jacobian`; each view's rows are weighted by its
+            `information_weight` (look-alikes of one hold share one view's worth).
 
     Returns:
         (P, P) float64 information for unit pixel noise (per coordinate).
@@ -123,7 +124,9 @@ def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.n
     rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
     S = np.zeros((len(intrinsic_names(camera.model)),) * 2)
     for v, r, t in zip(views, rv, tv, strict=True):  # one pose per view, or ValueError
-        S = schur_update(S, *view_jacobian(camera, v.object_points_m, r, t))
+        J_intr, J_pose = view_jacobian(camera, v.object_points_m, r, t)
+        scale = np.sqrt(v.information_weight)  # a view counting for w of an independent one: rows x sqrt(w)
+        S = schur_update(S, scale * J_intr, scale * J_pose)
     return S
 
 
@@ -277,7 +280,37 @@ def projection_uncertainty(
         raise ValueError(f"covered_mask_fn must return ({gy.size}, {gx.size}) bool, got {covered.shape}")
     fit = covered if covered.any() else None
     J = projection_jacobian(camera, gx, gy, distance_m=distance_m, absorb_rotation=absorb_rotation, fit_mask=fit)
-    return UncertaintyMap(grid_x_px=gx, grid_y_px=gy, sigma_px=projection_sigma(J, cov), covered=covered)
+    weight = pixel_variance_weight(J[covered] if covered.any() else J)
+    return UncertaintyMap(grid_x_px=gx, grid_y_px=gy, sigma_px=projection_sigma(J, cov), covered=covered,
+                          error_px=projection_error_rms(J, cov), error_weight=weight)
+
+
+def projection_error_rms(jacobian: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Expected length of the projection error, sqrt(trace(J Sigma J^T)) per point (px).
+
+    The RMS of the 2-D error vector's length, i.e. the root of the sum of both directions'
+    variances: what a user comparing projected and true pixels would measure on average.
+
+    Args:
+        jacobian: (..., 2, P) float64 from `projection_jacobian`.
+        covariance: (P, P) float64 intrinsic covariance.
+
+    Returns:
+        (...) float64 pixels.
+    """
+    V = np.einsum("...ip,pq,...iq->...", jacobian, covariance, jacobian)
+    return np.sqrt(np.clip(V, 0, None))
+
+
+def expected_error_px(covariance: np.ndarray, weight: np.ndarray) -> float:
+    """E = sqrt(trace(W Sigma)): the RMS over the weight's region of the expected projection error.
+
+    With W = `pixel_variance_weight` of the covered grid points this equals
+    sqrt(mean(projection_error_rms^2)) over them, exactly; the same number is reached by the
+    uncertainty map (`UncertaintyMap.expected_error_px`) and by candidate scoring, which only
+    swaps the covariance.
+    """
+    return float(np.sqrt(max(float(np.sum(np.asarray(weight) * np.asarray(covariance))), 0.0)))
 
 
 def covered_region_mask(image_size: tuple[int, int], corner_sets: Sequence[np.ndarray], grid: tuple[int, int] | None = None) -> np.ndarray:

@@ -165,7 +165,7 @@ def test_live_on_a_depthai_camera_that_is_not_there_says_so(tmp_path: Path, caps
 def test_source_auto_falls_back_when_no_camera_is_attached(recordings_dir: Path, tmp_path: Path, capsys) -> None:
     # the README's first command: no camera on this machine, so the demo recording plays instead
     code = main(["live", "--source", "auto", "--fallback", str(recordings_dir / DEMO), "--out", str(tmp_path / "o"),
-                 "--no-viewer", "--quiet", "--speed", "6"])
+                 "--no-viewer", "--quiet"])  # at its own 5 fps: no frame is dropped, whatever the load
     assert code == 0
     assert f"--source auto chose {recordings_dir / DEMO}" in capsys.readouterr().err
     assert (tmp_path / "o" / "camera_matrix.npy").exists() and (tmp_path / "o" / "session.rrd").exists()
@@ -185,3 +185,19 @@ def test_detection_is_bit_identical_on_one_and_two_opencv_threads(recordings_dir
     assert sum(d.corner_count for d in single) > 200
     for a, b in zip(single, threaded, strict=True):
         assert np.array_equal(a.ids, b.ids) and np.array_equal(a.corners_px, b.corners_px)
+
+
+def test_guidance_jsonl_writes_every_step_for_other_programs(recordings_dir: Path, tmp_path: Path) -> None:
+    steps_path = tmp_path / "steps.jsonl"
+    code = main(["live", "--source", str(recordings_dir / "frontal_webcam720"), "--out", str(tmp_path / "o"),
+                 "--no-viewer", "--quiet", "--guidance-jsonl", str(steps_path)])
+    assert code == 3  # a frontal capture is refused
+    lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
+    assert [s["frame_index"] for s in lines] == list(range(20))  # paced at its own 5 fps: every frame decided
+    assert sum(s["accepted"] for s in lines) >= 1
+    for s in lines:
+        target = s["guidance"]["target"]
+        assert s["guidance"]["sentence"].startswith("Board ") and target is not None  # never done: always a target
+        assert len(target["rvec"]) == 3 and len(target["tvec_m"]) == 3 and len(target["outline_px"]) == 4
+        assert target["distance_m"] == pytest.approx(float(np.linalg.norm(target["tvec_m"])), rel=0.5)
+        assert set(s["progress"]) >= {"frames_accepted", "coverage", "expected_error_px", "target_px", "done"}

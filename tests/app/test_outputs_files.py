@@ -256,7 +256,8 @@ def _payload() -> dict:
         _calibration(),
         verdict=Verdict(grade="good", trusted=True, rms_grade="excellent", reasons=("Coverage is complete.",)),
         model_choice=ModelChoice(chosen="pinhole", candidates={"pinhole": 0.2, "rational": 0.21}, reason="simplest within 5 %"),
-        uncertainty=UncertaintyMap(np.array([0.0, 1919.0]), np.array([0.0, 1079.0]), sigma, np.array([[True, True], [True, False]])),
+        uncertainty=UncertaintyMap(np.array([0.0, 1919.0]), np.array([0.0, 1079.0]), sigma, np.array([[True, True], [True, False]]),
+                                   error_px=sigma * 1.2, error_weight=np.eye(2)),
         coverage_summary={"completeness": 0.93, "missing_regions": [[0, 5]]},
         board=BoardSpec(),
         source={"kind": "folder", "path": "/data/run1"},
@@ -281,6 +282,7 @@ def test_calibration_json_records_everything_and_rounds_for_reading(tmp_path: Pa
     assert data["dropped_corners"] == [{"frame_index": 10, "corner_id": 7, "residual_px": 1.98765}]
     assert data["uncertainty"]["max_px"] == 0.9
     assert data["uncertainty"]["p95_covered_px"] == pytest.approx(0.29, abs=1e-6)
+    assert data["uncertainty"]["expected_error_px"] == pytest.approx(1.2 * np.sqrt((0.01 + 0.04 + 0.09) / 3), abs=1e-6)
     assert data["intrinsic_std"] == {"fx": 2.0, "fy": 2.0, "cx": 0.5, "cy": 0.5, "k1": 0.001}
     assert data["model_choice"]["candidates"] == {"pinhole": 0.2, "rational": 0.21}
     assert data["board"] == BoardSpec().to_dict()

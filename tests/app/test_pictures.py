@@ -122,16 +122,16 @@ def _uncertainty(level: float) -> UncertaintyMap:
     sigma[0, :] = sigma[-1, :] = 3 * level
     covered = np.zeros((5, 9), bool)
     covered[1:4, 2:7] = True
-    return UncertaintyMap(gx, gy, sigma, covered)
+    return UncertaintyMap(gx, gy, sigma, covered, error_px=sigma, error_weight=np.eye(2))
 
 
-def test_uncertainty_picture_writes_the_verdict_on_p95() -> None:
+def test_uncertainty_picture_writes_the_verdict_on_the_expected_error() -> None:
     met = uncertainty_picture(_uncertainty(0.05), target_px=0.1)
     missed = uncertainty_picture(_uncertainty(0.2), target_px=0.1)
     assert_picture(met)
     assert count_colour(met, GOOD) > 100 and count_colour(missed, GOOD) == 0  # green "meets the target"
     assert count_colour(missed, (40, 40, 200)) > 100 and count_colour(met, (40, 40, 200)) == 0
-    vmax = max(min(0.15, max(0.3, 0.1)), 1e-9)  # the documented scale: max(3 x target, 2 x p95), capped at the max
+    vmax = max(min(0.15, max(0.3, 0.1)), 1e-9)  # the documented scale: max(3 x target, 2 x E), capped at the max
     assert count_colour(met, heat(0.05, vmax)) > 20000  # the flat centre in its colour
     sized = uncertainty_picture(_uncertainty(0.05), target_px=0.1, image_size=SIZE)
     assert sized.shape == met.shape  # the grid runs through the edge pixels, so the inferred size is SIZE

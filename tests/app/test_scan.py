@@ -100,7 +100,7 @@ def test_same_view_rules() -> None:
 def test_replay_of_a_held_folder_passes_over_the_repeats_unless_every_frame(recordings_dir: Path, tmp_path: Path) -> None:
     folder = _held_views(recordings_dir, tmp_path, [0, 30, 66, 114], hold=12)
     # a budget of 4 frames: 4 views and their repeats are plenty to choose from, so no second pass
-    settings = SessionSettings(selector=SelectorSettings(max_frames=4))
+    settings = SessionSettings(selector=SelectorSettings(max_frames=4), stop_when_done=False)  # read to the end
     sparse, stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
     dense, dense_stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings, every_frame=True)
     assert stats.passed_over >= 12 and stats.frames_read + stats.passed_over == 48

@@ -307,3 +307,40 @@ def test_image_grid_defaults_follow_the_aspect():
     assert (gx.size, gy.size) == (16, 12)
     with pytest.raises(ValueError, match=r"covariance is \(9, 9\)"):
         U.projection_uncertainty(LENSES["pinhole"], np.eye(8))
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_expected_error_and_its_map_match_monte_carlo(model):
+    """E and the per-pixel expected error against 60 re-solves with fresh noise, within 20 % both ways.
+
+    The error of each re-solve is measured as a user would: project the truth's rays with the
+    re-solved model after the best-fit rotation over the covered region (`projection_difference`).
+    """
+    from calibcoach.app.solve.compare import projection_difference
+
+    cam = LENSES[model]
+    rng = np.random.default_rng(3)
+    poses = random_poses(cam, 8, rng, distance_m=(0.35, 0.6) if model == "fisheye" else (0.6, 1.0))
+    corners = [v.image_points_px for v in observe(cam, poses)]
+    cov = U.intrinsic_covariance(cam, observe(cam, poses), *stacked(poses), sigma_px=0.2)
+    umap = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda gx, gy: U.covered_region_mask(SIZE, corners, (gx.size, gy.size)))
+    squared = []
+    for _ in range(60):
+        views = observe(cam, poses, rng, noise_px=0.2)
+        obj = [v.object_points_m for v in views]
+        img = [v.image_points_px for v in views]
+        if model == "fisheye":
+            _, K, D, _, _ = cv2.fisheye.calibrate(
+                [o.reshape(1, -1, 3) for o in obj], [i.reshape(1, -1, 2) for i in img], SIZE, cam.camera_matrix.copy(),
+                cam.dist_coeffs.reshape(4, 1).copy(), flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+        else:
+            _, K, D, _, _ = cv2.calibrateCamera([o.astype(np.float32) for o in obj], [i.astype(np.float32) for i in img], SIZE, None, None)
+        estimate = CameraModel(model, K, D.reshape(-1)[: 4 if model == "fisheye" else 5], SIZE)
+        diff = projection_difference(cam, estimate, grid=(umap.grid_x_px.size, umap.grid_y_px.size), mask=umap.covered)
+        squared.append(diff.diff_px**2)
+    observed_map = np.sqrt(np.mean(squared, axis=0))  # (GY, GX) RMS error length per grid point
+    observed_E = float(np.sqrt(np.mean(observed_map[umap.covered] ** 2)))
+    assert 0.8 < observed_E / umap.expected_error_px < 1.2, (observed_E, umap.expected_error_px)
+    ratio = observed_map[umap.covered] / umap.error_px[umap.covered]
+    assert 0.8 < np.median(ratio) < 1.2 and np.percentile(ratio, 10) > 0.7 and np.percentile(ratio, 90) < 1.3, np.percentile(ratio, [10, 50, 90])

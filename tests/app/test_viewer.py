@@ -24,7 +24,8 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import open_source
 
 RECORDING = Path(__file__).resolve().parents[2] / "recordings" / "demo_webcam720_careful"
-REQUIRED_ENTITIES = ("camera/image", "camera/corners", "camera/axes", "camera/target", "guidance", "progress/coverage_pct", "progress/tilt_distance", "progress/processed_fps",
+REQUIRED_ENTITIES = ("camera/image", "camera/corners", "camera/axes", "camera/target", "camera/target_arrow", "guidance",
+                     "progress/expected_error_px", "progress/error_target_px", "progress/coverage_pct", "progress/tilt_distance", "progress/processed_fps",
                      "report/verdict", "report/per_frame_rms_px")
 
 
@@ -101,6 +102,12 @@ def test_saved_recording_holds_the_live_and_report_entities(replayed: Run) -> No
     assert "report/residuals" in entities
     # coverage is logged only when a frame was kept, not every frame
     assert 0 < sum(c.num_rows for c in entities["camera/coverage"]) < replayed.frames_logged
+    # the ghost board: an outline along the board's edges (4 x 12 points, closed) labelled with its sentence
+    ghost = [b for c in entities["camera/target"] for b in [c.to_record_batch()] if "LineStrips2D:strips" in b.column_names]
+    strips = [s for b in ghost for s in b.column("LineStrips2D:strips").to_pylist() if s]
+    assert strips and all(len(s[0]) == 49 for s in strips)
+    labels = [t for b in ghost for t in b.column("LineStrips2D:labels").to_pylist() if t]
+    assert labels and all(str(t[0]).startswith("Board ") for t in labels)
 
 
 def test_saved_recording_carries_the_blueprint(replayed: Run) -> None:

@@ -10,17 +10,28 @@ import numpy as np
 import pytest
 
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
-from calibcoach.coverage.guidance import next_guidance, region_words
 from calibcoach.coverage.pose import estimate_pose
 from calibcoach.coverage.select import FrameSelector, SelectorSettings, board_motion_px, corner_spread
+from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim_paths import place_board
 
 SPEC = BoardSpec()
 CAMERA = CameraModel("pinhole", [[900, 0, 640], [0, 900, 360], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1280, 720))
 W, H = CAMERA.image_size
+RANGES = ranges_for(CAMERA, BoardGeometry.of(SPEC))  # near <= 0.59 m, far >= 0.79 m on this lens
+CENTRE = BoardGeometry.of(SPEC).centre_m
+
+
+def new_map() -> CoverageMap:
+    return CoverageMap((W, H), ranges=RANGES)
+
+
+def selector(**settings) -> FrameSelector:
+    return FrameSelector((W, H), squares_x=SPEC.squares_x, settings=SelectorSettings(**settings), coverage=new_map())
 
 
 def detection_at(centre_px, distance_m=0.9, *, tilt_x=0.0, tilt_y=0.0, keep=None) -> Detection:
@@ -63,11 +74,22 @@ def test_footprint_shrinks_with_distance() -> None:
     assert far.distance_m == pytest.approx(1.6, rel=0.02)
 
 
+def test_range_is_the_board_centres_distance_even_when_most_of_the_board_is_out_of_view() -> None:
+    # the board centred on the image corner shows about a quarter of its corners: its footprint is
+    # small, but the person holds it near, and the map must say so (issue 9: distance from the pose)
+    partial = detection_at((0, 0), 0.5)
+    assert 6 <= partial.corner_count < 30
+    pose = estimate_pose(partial, CAMERA, CENTRE)
+    assert pose is not None and pose.distance_m == pytest.approx(0.5, rel=0.02)
+    assert pose.footprint < 0.3
+    assert new_map().contribution(partial, pose).distance_cell == "near"
+
+
 def test_coverage_counts_corners_where_they_land_and_credits_tilt_and_distance() -> None:
-    cmap = CoverageMap((W, H))
+    cmap = new_map()
     assert (cmap.rows, cmap.cols) == (4, 6)
-    det = detection_at((150, 100), 1.4, tilt_x=40)
-    c = cmap.contribution(det, estimate_pose(det, CAMERA))
+    det = detection_at((150, 100), 1.2, tilt_x=40)
+    c = cmap.contribution(det, estimate_pose(det, CAMERA, CENTRE))
     assert c.region_counts[0, 0] > 0 and c.region_counts[-1, -1] == 0
     assert set(c.tilt_cells) == {"top_away", "steep_x"}
     assert c.distance_cell == "far"
@@ -79,19 +101,19 @@ def test_coverage_counts_corners_where_they_land_and_credits_tilt_and_distance()
 
 
 def test_a_diverse_capture_completes_the_map_and_frontal_centred_frames_never_do() -> None:
-    diverse = CoverageMap((W, H))
-    frontal = CoverageMap((W, H))
+    diverse = new_map()
+    frontal = new_map()
     xs, ys = np.linspace(120, W - 120, 6), np.linspace(100, H - 100, 4)
     tilts = [(0, 0), (35, 0), (-35, 0), (0, 40), (0, -40), (25, 25)]
     for i, (x, y) in enumerate((x, y) for y in ys for x in xs):
-        for dist in (0.45, 0.85, 1.6):
+        for dist in (0.45, 0.7, 1.0):
             tx, ty = tilts[(i + int(dist * 10)) % len(tilts)]
             det = detection_at((x, y), dist, tilt_x=tx, tilt_y=ty)
             if det.corner_count >= 6:
-                diverse.add(diverse.contribution(det, estimate_pose(det, CAMERA)))
+                diverse.add(diverse.contribution(det, estimate_pose(det, CAMERA, CENTRE)))
     for k in range(40):
         det = detection_at((640 + 10 * np.sin(k), 360 + 8 * np.cos(k)), 0.9, tilt_x=3 * np.sin(k))
-        frontal.add(frontal.contribution(det, estimate_pose(det, CAMERA)))
+        frontal.add(frontal.contribution(det, estimate_pose(det, CAMERA, CENTRE)))
     assert diverse.is_complete(), diverse.summary()["missing"]
     assert not frontal.is_complete()
     assert frontal.completeness() < 0.6
@@ -99,20 +121,17 @@ def test_a_diverse_capture_completes_the_map_and_frontal_centred_frames_never_do
     assert (0, 0) in [(r, c) for r, c, _ in frontal.missing_regions()]
 
 
-def test_guidance_names_the_corner_first_and_says_done_when_complete() -> None:
-    cmap = CoverageMap((W, H))
-    g = next_guidance(cmap)
-    assert g.sentence.startswith("Move the board to the top-left corner of the image")
-    assert "tilt" in g.sentence or "facing the camera" in g.sentence
-    assert g.target_centre_px == pytest.approx((W / 12, H / 8))
-    assert region_words(0, 2, 4, 6) == "the top edge of the image (left half)"
-    assert region_words(2, 0, 4, 6) == "the left edge of the image"
-    assert region_words(3, 5, 4, 6) == "the bottom-right corner of the image"
-    assert region_words(1, 2, 4, 6) == "the centre of the image"
+def test_unreachable_regions_are_not_required() -> None:
+    reachable = np.ones((4, 6), bool)
+    reachable[0, 0] = reachable[-1, -1] = False  # e.g. a fisheye's black corners
+    cmap = CoverageMap((W, H), ranges=RANGES, reachable=reachable)
+    assert (0, 0) not in [(r, c) for r, c, _ in cmap.missing_regions()]
+    assert cmap.region_weights[0, 0] == 0 and cmap.region_weights.sum() == pytest.approx(1.0)
+    assert cmap.region_met()[0, 0] and not cmap.region_met()[0, 1]
 
 
 def test_selector_gates_each_reason() -> None:
-    sel = FrameSelector((W, H), squares_x=SPEC.squares_x)
+    sel = selector()
     full = detection_at((640, 360), 0.9)
     few = Detection(full.corners_px[:5], full.ids[:5], full.object_points_m[:5], full.marker_ids)
     row = full.ids < 7  # one board row: collinear
@@ -135,7 +154,7 @@ def test_selector_gates_each_reason() -> None:
 
 
 def test_selector_accepts_new_coverage_and_rejects_look_alikes() -> None:
-    sel = FrameSelector((W, H), squares_x=SPEC.squares_x)
+    sel = selector()
     first = detection_at((640, 360), 0.9)
     d1, c1 = sel.decide(0, first, estimate_pose(first, CAMERA), motion_px_s=None, blur_px=1.0)
     assert d1.accepted and c1 is not None
@@ -143,28 +162,29 @@ def test_selector_accepts_new_coverage_and_rejects_look_alikes() -> None:
     twin = detection_at((646, 357), 0.91)
     d2, _ = sel.decide(1, twin, estimate_pose(twin, CAMERA), motion_px_s=None, blur_px=1.0)
     assert d2.reason == "duplicate" and "frame 0" in d2.detail
-    # the same twin is kept if it would shrink the uncertainty a lot
-    d3, _ = sel.decide(1, twin, estimate_pose(twin, CAMERA), motion_px_s=None, blur_px=1.0, uncertainty_gain=lambda: 0.9)
-    assert d3.accepted
+    # never kept live, however much it would cut the error: a repeat weights one pose over the rest
+    d3, _ = sel.decide(1, twin, estimate_pose(twin, CAMERA), motion_px_s=None, blur_px=1.0,
+                       uncertainty_gain=lambda: 0.9, uncertainty_needed=0.01)
+    assert d3.reason == "duplicate" and d3.quality > 0  # held in reserve for the final solve
     corner = detection_at((200, 130), 1.2, tilt_y=40)
     d4, _ = sel.decide(2, corner, estimate_pose(corner, CAMERA), motion_px_s=None, blur_px=1.0)
     assert d4.accepted and d4.coverage_gain > 0.02
 
 
 def test_selector_blur_limit_follows_the_cameras_own_sharpness() -> None:
-    sel = FrameSelector((W, H), squares_x=SPEC.squares_x, settings=SelectorSettings(keep_all_usable=True))
+    sel = selector(keep_all_usable=True)
     for k in range(3):
         det = detection_at((300 + 200 * k, 360), 0.9)
-        d, c = sel.decide(k, det, estimate_pose(det, CAMERA), motion_px_s=None, blur_px=0.8)
-        sel.commit(k, det, estimate_pose(det, CAMERA), c, blur_px=0.8)
+        d, c = sel.decide(k, det, estimate_pose(det, CAMERA, CENTRE), motion_px_s=None, blur_px=0.8)
+        sel.commit(k, det, estimate_pose(det, CAMERA, CENTRE), c, blur_px=0.8)
     det = detection_at((640, 200), 0.9)
-    d, _ = sel.decide(9, det, estimate_pose(det, CAMERA), motion_px_s=None, blur_px=1.8)
+    d, _ = sel.decide(9, det, estimate_pose(det, CAMERA, CENTRE), motion_px_s=None, blur_px=1.8)
     assert d.reason == "blurred" and "limit 1.6" in d.detail
     assert d.quality == pytest.approx((1.6 / 1.8) ** 2)  # kept in reserve at a lower weight
 
 
 def test_frame_limit() -> None:
-    sel = FrameSelector((W, H), squares_x=SPEC.squares_x, settings=SelectorSettings(max_frames=1, keep_all_usable=True))
+    sel = selector(max_frames=1, keep_all_usable=True)
     det = detection_at((640, 360), 0.9)
     d, c = sel.decide(0, det, None, motion_px_s=None, blur_px=None)
     sel.commit(0, det, None, c)

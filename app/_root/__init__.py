@@ -1,0 +1,44 @@
+"""calibcoach: a live camera-calibration capture assistant.
+
+The package root (this file lives in `app/_root/`, mapped onto `calibcoach` in pyproject.toml, so
+the repository keeps its design-card layout). It holds the embedding API and nothing else; the
+stages live in `calibcoach.drivers`, `calibcoach.coverage` and `calibcoach.app`. Names are
+loaded on first use, so `import calibcoach.drivers.v4l2` does not pull in OpenCV's solvers.
+
+    import calibcoach
+    assistant = calibcoach.Assistant(board=calibcoach.BoardSpec(), image_size=(1280, 720))
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+_EXPORTS = {
+    "Assistant": "calibcoach.app.assistant",
+    "Step": "calibcoach.app.assistant",
+    "Progress": "calibcoach.app.assistant",
+    "Result": "calibcoach.app.assistant",
+    "Guidance": "calibcoach.coverage.guidance",
+    "Target": "calibcoach.coverage.guidance",
+    "BoardSpec": "calibcoach.coverage.board",
+    "CameraModel": "calibcoach.drivers.lens",
+    "CalibrationError": "calibcoach.drivers.errors",
+}
+__all__ = sorted(_EXPORTS)
+
+try:
+    __version__ = version("calibcoach")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'calibcoach' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return __all__

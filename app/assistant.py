@@ -1,0 +1,163 @@
+"""The embedding API: drive a guided capture from a robot, a ROS node or a script.
+
+    import calibcoach
+    assistant = calibcoach.Assistant(board=calibcoach.BoardSpec(), image_size=(1280, 720), model="auto")
+    for image, timestamp_ns in camera:
+        step = assistant.feed(image, timestamp_ns)
+        show(step.guidance.sentence, step.guidance.target)   # where the board should go next
+        if step.progress.done:
+            break
+    result = assistant.finish()                               # camera_matrix, dist_coeffs, verdict ...
+
+`feed` detects the board and decides one frame. It looks one frame ahead (the board must be still
+on both sides of a frame, which catches the first frame of a move), so each step decides the
+frame fed before; the very first call decides nothing (`frame_index` -1) and `finish` decides the
+last. `calibcoach calibrate` and `calibcoach live` run on the same `Assistant` steps
+(`feed_detected` when detection ran elsewhere, e.g. on worker threads).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionResult, SessionSettings
+from calibcoach.app.solve.result import Verdict
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.coverage.guidance import Guidance, Target
+from calibcoach.drivers.base import Frame
+
+__all__ = ["Assistant", "Guidance", "Progress", "Result", "Step", "Target"]
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    frames_accepted: int
+    coverage: float  # 0..1 of what this lens can show
+    expected_error_px: float | None  # E: expected projection error over the covered region; None before the first solve
+    target_px: float | None  # the stop rule's target for E; None until the corner noise is measured
+    done: bool  # the stop rule is met: call finish()
+    stop_reason: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    frame_index: int  # the frame this step decides (the one fed before; -1 on the first call)
+    accepted: bool
+    reason: str  # "accepted" or why not ("moving", "adds nothing", ...)
+    detail: str  # the numbers behind the reason
+    guidance: Guidance  # .sentence, .target (None only when done)
+    progress: Progress
+    outcome: FrameOutcome | None  # everything the session knows about the frame (corners, pose ...); None on the first call
+    frame: Frame | None = None  # the frame decided (image, timestamp); None on the first call
+
+
+@dataclass(frozen=True, slots=True)
+class Result:
+    camera_matrix: np.ndarray  # (3, 3) float64
+    dist_coeffs: np.ndarray  # (5,) pinhole, (8,) rational, (4,) fisheye
+    model: str  # "pinhole" | "rational" | "fisheye"
+    image_size: tuple[int, int]  # (width, height)
+    rms_px: float
+    expected_error_px: float  # E of the final solve
+    verdict: Verdict  # .grade, .trusted, .reasons
+    session: SessionResult  # the full result (per-frame errors, coverage, uncertainty map ...) for the outputs
+
+
+def step_record(outcome: FrameOutcome, timestamp_ns: int) -> dict:
+    """One step as plain JSON types: what `calibcoach live --guidance-jsonl` writes per line."""
+    g, p, d = outcome.guidance, outcome.progress, outcome.decision
+    target = None
+    if g.target is not None:
+        t = g.target
+        target = {"centre_px": [float(v) for v in t.centre_px], "rvec": t.rvec.tolist(), "tvec_m": t.tvec_m.tolist(),
+                  "tilt_x_deg": t.tilt_x_deg, "tilt_y_deg": t.tilt_y_deg, "distance_m": t.distance_m,
+                  "outline_px": t.outline_px.tolist()}
+    return {
+        "frame_index": outcome.frame_index, "timestamp_ns": int(timestamp_ns), "accepted": d.accepted, "reason": d.reason,
+        "detail": d.detail, "guidance": {"sentence": g.sentence, "target": target, "why": g.why},
+        "progress": {"frames_accepted": p.frames_accepted, "coverage": p.coverage, "expected_error_px": p.expected_error_px,
+                     "target_px": p.target_px, "done": p.done, "stop_reason": p.stop_reason},
+    }
+
+
+class Assistant:
+    """A guided capture: feed frames, follow `step.guidance`, stop at `step.progress.done`, then `finish()`.
+
+    Args:
+        board: the printed board (default: 8 x 11, DICT_5X5_100, 30.01 / 22.01 mm).
+        image_size: (width, height) of the frames that will be fed.
+        model: "auto", "pinhole", "rational" or "fisheye" (default: the settings', "auto").
+        settings: the full session settings, for what the arguments above do not cover.
+    """
+
+    def __init__(self, board: BoardSpec | None = None, image_size: tuple[int, int] = (1280, 720), model: str | None = None,
+                 *, settings: SessionSettings | None = None) -> None:
+        self.board = board or BoardSpec()
+        base = settings or SessionSettings()
+        if model is not None and model != base.model:
+            base = replace(base, model=model)
+        self.session = CalibrationSession(self.board, (int(image_size[0]), int(image_size[1])), base)
+        self._detector: CharucoBoardDetector | None = None
+        self._held: tuple[Frame, Detection] | None = None
+        self._count = 0
+        self.last_outcome: FrameOutcome | None = None
+
+    # --- per frame --------------------------------------------------------------------------------
+    def feed(self, image: np.ndarray, timestamp_ns: int) -> Step:
+        """Detect the board in `image` ((H, W) uint8 grey or (H, W, 3) BGR) and decide the previous frame."""
+        frame = Frame(index=self._count, timestamp_ns=int(timestamp_ns), image=image)
+        if self._detector is None:
+            self._detector = CharucoBoardDetector(self.board)
+        return self.feed_detected(frame, self._detector.detect(frame.grey()))
+
+    def feed_detected(self, frame: Frame, detection: Detection) -> Step:
+        """`feed` for a frame whose detection is already known (frame.index as the source numbers it).
+
+        Once the session is done, frames are still taken but decided as "frame limit"."""
+        if self._detector is not None and self._detector.settled:
+            self.session.board = self._detector.spec
+        self._count = frame.index + 1
+        held, self._held = self._held, (frame, detection)
+        if held is None:
+            return Step(-1, False, "waiting", "a step decides the frame before it (one frame of lookahead)",
+                        self.session.guide.guidance(done=self.session.done), self._progress(), None)
+        return self._decide(held, following=(detection, frame.timestamp_ns))
+
+    def _decide(self, item: tuple[Frame, Detection], *, following: tuple[Detection, int] | None) -> Step:
+        frame, detection = item
+        outcome = self.session.process(frame, detection, following=following)
+        self.last_outcome = outcome
+        d = outcome.decision
+        return Step(outcome.frame_index, d.accepted, d.reason, d.detail, outcome.guidance, self._progress(), outcome, frame)
+
+    def flush(self) -> Step | None:
+        """Decide the frame still held for lookahead (the source ended); None when there is none."""
+        held, self._held = self._held, None
+        return None if held is None or self.session.done else self._decide(held, following=None)
+
+    def _progress(self) -> Progress:
+        p = self.session.progress()
+        return Progress(p.frames_accepted, p.coverage, p.expected_error_px, p.target_px, p.done, p.stop_reason)
+
+    @property
+    def done(self) -> bool:
+        return self.session.done
+
+    # --- the end ----------------------------------------------------------------------------------
+    def finish(self) -> Result:
+        """Decide the last frame, then the final robust solve, model choice and verdict.
+
+        Raises:
+            calibcoach.drivers.errors.CalibrationError: too few usable frames to calibrate at all (the message says why).
+        """
+        self.flush()
+        result = self.session.finish()
+        cal = result.calibration
+        return Result(
+            camera_matrix=cal.camera.camera_matrix.copy(), dist_coeffs=cal.camera.dist_coeffs.copy(),
+            model=cal.camera.model, image_size=cal.camera.image_size, rms_px=cal.rms_px,
+            expected_error_px=result.uncertainty.expected_error_px, verdict=result.verdict, session=result,
+        )

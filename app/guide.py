@@ -1,0 +1,135 @@
+"""The guide: keeps one concrete target pose up, and changes it when it did not work.
+
+After every change of the data (a frame accepted, new intrinsics) the session hands the guide a
+fresh ranking of candidate poses (`app/solve/next_view.py`); the guide shows the best one that
+has not failed. A target fails, and is not asked for again, when the board was held at it
+(centre, tilts and range within a person's error of it, for `EXECUTED_S`) and nothing was
+accepted: the pose could not be registered, whatever the model predicted. A target that has
+been up for `STALE_S` without anything accepted is also set aside, until three more frames have
+been accepted: the person may have tried and the detector seen nothing. Both rules together
+keep the same unregistered pose from being asked for three times running.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibcoach.app.solve.next_view import RankedPose
+from calibcoach.coverage.guidance import Guidance, Target, sentence_for
+from calibcoach.coverage.pose import BoardPose
+from calibcoach.drivers.geometry import pose_matrix
+from calibcoach.drivers.lens import CameraModel
+
+EXECUTED_S = 0.5  # held at the target this long without an acceptance: the target failed
+STALE_S = 3.5  # up this long without any acceptance: set aside (about two holds of a person)
+SET_ASIDE_ACCEPTS = 3  # a stale target may come back after this many accepted frames
+# "At the target": how far a person's execution may be off (human error is ~4% of the image for
+# the centre, ~6 deg per tilt, ~8% in range; these are about twice that).
+NEAR_CENTRE = 0.10  # share of the image diagonal
+NEAR_TILT_DEG = 15.0
+NEAR_RANGE = 0.2  # relative
+
+
+@dataclass(frozen=True, slots=True)
+class _Shown:
+    ranked: RankedPose
+    issued_ns: int
+    accepted_at_issue: int
+
+
+class Guide:
+    """Chooses the target to show from the session's rankings; see the module docstring."""
+
+    def __init__(self, image_size: tuple[int, int], board_centre_m: np.ndarray) -> None:
+        self.image_size = image_size
+        self.board_centre_m = np.asarray(board_centre_m, np.float64)
+        self.ranking: list[RankedPose] = []
+        self.failed: set[tuple] = set()
+        self._set_aside: dict[tuple, int] = {}  # key -> accepted count at which it may return
+        self._shown: _Shown | None = None
+        self._near_since_ns: int | None = None
+        self._camera: CameraModel | None = None
+        self._accepted = 0
+
+    @property
+    def excluded(self) -> set[tuple]:
+        return self.failed | {k for k, until in self._set_aside.items() if self._accepted < until}
+
+    @property
+    def best(self) -> RankedPose | None:
+        """The best candidate not excluded (what guidance shows), or None."""
+        excluded = self.excluded
+        return next((r for r in self.ranking if r.candidate.key not in excluded), None)
+
+    def update(self, ranking: list[RankedPose], camera: CameraModel, *, accepted: int) -> None:
+        """A new ranking after the data changed; `accepted` = frames accepted so far."""
+        self.ranking, self._camera, self._accepted = ranking, camera, accepted
+
+    def observe(self, timestamp_ns: int, pose: BoardPose | None, *, accepted: int) -> None:
+        """One processed frame: the board's pose (None when not seen) and frames accepted so far."""
+        self._accepted = accepted
+        best = self.best
+        shown = self._shown
+        if best is None:
+            self._shown = None
+            return
+        if shown is None or shown.ranked.candidate.key != best.candidate.key or accepted > shown.accepted_at_issue:
+            # a new target, or the data changed under the old one: it starts afresh
+            self._shown = _Shown(best, timestamp_ns, accepted)
+            self._near_since_ns = None
+            return
+        key = shown.ranked.candidate.key
+        if pose is not None and self._is_near(pose, shown.ranked):
+            self._near_since_ns = timestamp_ns if self._near_since_ns is None else self._near_since_ns
+            if timestamp_ns - self._near_since_ns >= EXECUTED_S * 1e9:
+                self.failed.add(key)
+        else:
+            self._near_since_ns = None
+        if key not in self.failed and timestamp_ns - shown.issued_ns >= STALE_S * 1e9:
+            self._set_aside[key] = accepted + SET_ASIDE_ACCEPTS
+        if key in self.excluded:
+            self._shown = None
+            self.observe(timestamp_ns, None, accepted=accepted)  # show the next best at once
+
+    def _is_near(self, pose: BoardPose, ranked: RankedPose) -> bool:
+        cand = ranked.candidate
+        if self._camera is None:
+            return False
+        centre_cam = pose_matrix(pose.rvec) @ self.board_centre_m + pose.tvec
+        centre_px = self._camera.project(centre_cam.reshape(1, 3))[0]
+        diag = float(np.hypot(*self.image_size))
+        return bool(
+            np.all(np.isfinite(centre_px))
+            and np.linalg.norm(centre_px - np.asarray(cand.centre_px)) <= NEAR_CENTRE * diag
+            and abs(pose.tilt_x_deg - cand.tilt_x_deg) <= NEAR_TILT_DEG
+            and abs(pose.tilt_y_deg - cand.tilt_y_deg) <= NEAR_TILT_DEG
+            and abs(pose.distance_m / cand.range_m - 1.0) <= NEAR_RANGE
+        )
+
+    def guidance(self, *, done: bool) -> Guidance:
+        """The instruction to show now."""
+        if done:
+            return Guidance("Done: hold on, calibrating.", None, "the stop rule is met")
+        best = self.best
+        if best is None or self._camera is None:
+            return Guidance("Hold the board up in front of the camera, facing it, about an arm's length away.",
+                            None, "no board seen yet")
+        target = target_of(best, self._camera, self.board_centre_m)
+        why = f"cuts the expected error by {best.error_cut * 100:.0f}%"
+        if best.coverage_gain > 0:
+            why += f", fills {best.coverage_gain * 100:.1f}% of the coverage"
+        return Guidance(sentence_for(target, self.image_size), target, why)
+
+
+def target_of(ranked: RankedPose, camera: CameraModel, board_centre_m: np.ndarray) -> Target:
+    """The public Target of a ranked candidate: pose, tilts, range and the outline in the image."""
+    cand = ranked.candidate
+    v = cand.view
+    R = pose_matrix(v.rvec)
+    sq = board_centre_m[:2] * 2.0  # (width, height) of the chessboard area
+    corners = np.array([[0, 0, 0], [sq[0], 0, 0], [sq[0], sq[1], 0], [0, sq[1], 0]], np.float64)
+    outline = camera.project(corners @ R.T + v.tvec)
+    return Target(centre_px=cand.centre_px, rvec=v.rvec.copy(), tvec_m=v.tvec.copy(), tilt_x_deg=cand.tilt_x_deg,
+                  tilt_y_deg=cand.tilt_y_deg, distance_m=cand.range_m, outline_px=outline)

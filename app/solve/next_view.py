@@ -1,0 +1,115 @@
+"""Next-best pose: which candidate pose would cut the expected projection error E the most.
+
+Calibration Wizard and AprilCal choose the next view by the uncertainty it is predicted to
+leave; so does calibcoach. A candidate's virtual view (the corners the detector would find at
+that pose, through the current intrinsics) is stacked onto the information of the frames kept
+so far (the Schur complement with its own pose marginalised, exactly as a real frame would be),
+and E is recomputed: E^2 = sigma^2 trace(W S^-1), W the covered region's pixel weight. The noise
+sigma cancels in the relative cut, so candidates are ranked before the first full solve too.
+
+While coverage is incomplete, the share of the unmet coverage a candidate would fill weighs in:
+filling all of it counts like halving E (`COVERAGE_WORTH`), since E is only measured where the
+board has been and the rest of the image is extrapolation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibcoach.app.solve.uncertainty import covariance_from_information, schur_update, view_jacobian
+from calibcoach.coverage.candidates import CandidatePose
+from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.grid import CoverageMap
+from calibcoach.coverage.pose import BoardPose, corner_footprint
+from calibcoach.drivers.lens import CameraModel
+
+COVERAGE_WORTH = 0.5  # filling all unmet coverage is worth as much as cutting E by half
+
+
+@dataclass(frozen=True, slots=True)
+class RankedPose:
+    candidate: CandidatePose
+    error_cut: float  # relative cut of E if a frame at this pose joined, 0..1
+    coverage_gain: float  # share of the whole coverage map it would fill, 0..1
+    score: float  # what the ranking sorts by (higher first)
+
+
+def error_cut(information: np.ndarray, weight: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray,
+              before: float | None = None) -> tuple[np.ndarray, float]:
+    """New information and the relative cut of E = sqrt(trace(W S^-1)) if a view joins.
+
+    Args:
+        information: (P, P) float64 S of the frames so far (unit noise).
+        weight: (P, P) float64 W (`UncertaintyMap.error_weight`).
+        J_intr: (2n, P) float64 the view's intrinsic Jacobian; J_pose (2n, 6) its pose Jacobian.
+        before: trace(W S^-1) when already known (ranking many candidates against one S).
+
+    Returns:
+        (P, P) float64 S with the view, and the cut 1 - E_after / E_before in [0, 1].
+    """
+    if before is None:
+        before = float(np.sum(weight * covariance_from_information(information)))
+    S_new = schur_update(information, J_intr, J_pose)
+    after = float(np.sum(weight * covariance_from_information(S_new)))
+    if not (before > 0 and np.isfinite(after)):
+        return S_new, 0.0
+    return S_new, float(max(0.0, 1.0 - np.sqrt(max(after, 0.0) / before)))
+
+
+def detection_of(candidate: CandidatePose) -> Detection:
+    """The detection a frame at the candidate pose would give (its virtual view's corners)."""
+    v = candidate.view
+    return Detection(v.image_points_px.astype(np.float32), v.ids, v.object_points_m.astype(np.float32),
+                     np.zeros(0, np.int32))
+
+
+def pose_of(candidate: CandidatePose, image_size: tuple[int, int]) -> BoardPose:
+    """The BoardPose a frame at the candidate pose would be measured with (no PnP: the pose is known)."""
+    v = candidate.view
+    tilt = float(np.degrees(np.arccos(np.cos(np.radians(candidate.tilt_x_deg)) * np.cos(np.radians(candidate.tilt_y_deg)))))
+    return BoardPose(rvec=v.rvec, tvec=v.tvec, tilt_deg=tilt, tilt_x_deg=candidate.tilt_x_deg,
+                     tilt_y_deg=candidate.tilt_y_deg, distance_m=candidate.range_m,
+                     centre_px=v.image_points_px.mean(axis=0), footprint=corner_footprint(v.image_points_px, image_size),
+                     fit_rms_px=0.0)
+
+
+def rank_poses(
+    camera: CameraModel,
+    information: np.ndarray,
+    weight: np.ndarray,
+    candidates: Sequence[CandidatePose],
+    coverage: CoverageMap,
+    *,
+    board_centre_m: np.ndarray,
+    excluded: Collection[tuple] = (),
+    use_error: bool = True,
+) -> list[RankedPose]:
+    """Candidates best first; `excluded` keys (targets that did not register) are left out.
+
+    `use_error` False ranks by coverage alone: before the first solve the full model's information
+    is rank deficient and every candidate would "cut E by 99%".
+
+    Ties are broken by the candidate order (position, tilt, range), so the ranking is reproducible.
+    """
+    before = float(np.sum(weight * covariance_from_information(information))) if use_error else 0.0
+    deficit = 1.0 - coverage.completeness()
+    ranked: list[RankedPose] = []
+    for cand in candidates:
+        if cand.key in excluded:
+            continue
+        cut = 0.0
+        if use_error:
+            J_intr, J_pose = view_jacobian(camera, cand.view.object_points_m, cand.view.rvec, cand.view.tvec)
+            if not (np.all(np.isfinite(J_intr)) and np.all(np.isfinite(J_pose))):
+                continue
+            _, cut = error_cut(information, weight, J_intr, J_pose, before)
+        gain = 0.0
+        if deficit > 1e-3:
+            gain = coverage.gain(coverage.contribution(detection_of(cand), pose_of(cand, camera.image_size)))
+        score = cut + (COVERAGE_WORTH * gain / deficit if deficit > 1e-3 else 0.0)
+        ranked.append(RankedPose(cand, cut, gain, score))
+    ranked.sort(key=lambda r: -r.score)  # stable: equal scores keep the candidate order
+    return ranked

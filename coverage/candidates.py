@@ -1,0 +1,106 @@
+"""Poses a person can hold and calibcoach can register: the candidates next-best-pose guidance picks from.
+
+A candidate is said the way a person thinks of it: where in the image the board's centre goes,
+how far away it is (range from the camera to the board's centre), and which way it is tilted
+against the line of sight. Positions span the image on a 5 x 3 grid (boards near the border
+run partly out of view on purpose: the corners that stay are where distortion is strongest);
+tilts are frontal, 30 deg and 50 deg towards each of the four edges (the method asks for 30-60);
+ranges are near, mid and far.
+
+Ranges come from the board and the current intrinsics, so they mean the same on every lens:
+far is where a frontal board spans ~38% of the image height (never beyond 90% of the range at
+which its markers stop being readable), mid ~52%, near ~72%. A candidate is kept only when its
+virtual view (`virtual_view.py`) shows at least `MIN_TARGET_CORNERS` detectable corners, every
+board corner stays `MIN_RANGE_M` in front of the lens, and its tilt is at most 50 deg.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_view
+from calibcoach.drivers.geometry import pose_facing_pixel, pose_matrix
+from calibcoach.drivers.lens import CameraModel
+
+POSITIONS_X = (0.1, 0.3, 0.5, 0.7, 0.9)  # board centre, share of the image width
+POSITIONS_Y = (0.12, 0.5, 0.88)  # and of its height
+TILTS_DEG = ((0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (0.0, 30.0), (0.0, -30.0),
+             (50.0, 0.0), (-50.0, 0.0), (0.0, 50.0), (0.0, -50.0))  # (tilt_x, tilt_y)
+HEIGHT_SHARE = {"far": 0.38, "mid": 0.52, "near": 0.72}  # frontal board height over image height
+RANGE_NAMES = ("near", "mid", "far")
+MIN_TARGET_CORNERS = 16  # ~a quarter of the default board: a partial view that still pins its pose
+MIN_RANGE_M = 0.12  # no board corner closer to the lens than this (a hand, a focus limit)
+_READABLE_SHARE = 0.9  # far stays within 90% of the range where frontal markers become unreadable
+
+
+@dataclass(frozen=True, slots=True)
+class Ranges:
+    """Representative ranges (m) of near, mid and far, and the limits between them."""
+
+    near_m: float
+    mid_m: float
+    far_m: float
+
+    @property
+    def near_max_m(self) -> float:
+        return float(np.sqrt(self.near_m * self.mid_m))
+
+    @property
+    def far_min_m(self) -> float:
+        return float(np.sqrt(self.mid_m * self.far_m))
+
+    def cell(self, range_m: float) -> str:
+        """'near', 'mid' or 'far' for a board centre `range_m` from the camera."""
+        return "near" if range_m <= self.near_max_m else "far" if range_m >= self.far_min_m else "mid"
+
+    def of(self, name: str) -> float:
+        return {"near": self.near_m, "mid": self.mid_m, "far": self.far_m}[name]
+
+
+def ranges_for(camera: CameraModel, board: BoardGeometry) -> Ranges:
+    """Near, mid and far for this board on this lens (focal length at the image centre)."""
+    f = 0.5 * (camera.fx + camera.fy)
+    h = camera.image_size[1]
+    share_range = {name: board.height_m * f / (share * h) for name, share in HEIGHT_SHARE.items()}
+    readable = board.marker_m * f / board.min_marker_px  # frontal markers at the centre shrink to the limit here
+    far = min(share_range["far"], _READABLE_SHARE * readable)
+    mid = min(share_range["mid"], 0.8 * far)
+    near = min(share_range["near"], 0.8 * mid)
+    return Ranges(near_m=float(near), mid_m=float(mid), far_m=float(far))
+
+
+@dataclass(frozen=True, slots=True)
+class CandidatePose:
+    """One pose to ask for, in a person's terms and as the board pose that realises it."""
+
+    key: tuple[int, int, int, str]  # (position x index, position y index, tilt index, range name): stable identity
+    centre_px: tuple[float, float]  # where the board's centre should show
+    range_m: float  # camera to board centre
+    range_name: str
+    tilt_x_deg: float  # top edge away = positive
+    tilt_y_deg: float  # right edge away = positive
+    view: VirtualView  # the pose (rvec, tvec) and the corners it would give
+
+
+def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -> list[CandidatePose]:
+    """Every candidate pose that a person can hold and the detector would register (see module docstring)."""
+    w, h = camera.image_size
+    centres = np.array([[fx * w, fy * h] for fy in POSITIONS_Y for fx in POSITIONS_X])
+    rays = camera.unproject(centres)
+    out: list[CandidatePose] = []
+    for k, (centre, ray) in enumerate(zip(centres, rays, strict=True)):
+        ix, iy = k % len(POSITIONS_X), k // len(POSITIONS_X)
+        for it, (tx, ty) in enumerate(TILTS_DEG):
+            for name in RANGE_NAMES:
+                rng = ranges.of(name)
+                rvec, tvec = pose_facing_pixel(ray, board.centre_m, rng, tilt_x_deg=tx, tilt_y_deg=ty)
+                if np.min((board.outline_m @ pose_matrix(rvec).T + tvec)[:, 2]) < MIN_RANGE_M:
+                    continue
+                view = virtual_view(camera, board, rvec, tvec)
+                if view.corner_count < MIN_TARGET_CORNERS:
+                    continue
+                out.append(CandidatePose((ix, iy, it, name), (float(centre[0]), float(centre[1])), float(rng), name,
+                                         float(tx), float(ty), view))
+    return out

@@ -1,0 +1,148 @@
+"""The guidance loop closed: a simulated person follows `calibcoach.Assistant` at default settings.
+
+Issue 9's promise, tested the way an embedding program uses calibcoach: whoever does what the
+guidance says gets an automatic stop and a trusted calibration, on a webcam, a wide (rational)
+lens and a fisheye; the words always agree with the target they describe; an unregistered pose
+is not asked for three times running; a lazy, frontal capture is refused. The multi-seed,
+multi-hand figures are in bench/guided.py; these are single seeds, one per lens.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+import calibcoach
+from calibcoach.app.solve.compare import projection_difference
+from calibcoach.app.solve.uncertainty import covered_region_mask
+from calibcoach.coverage.candidates import candidate_poses, ranges_for
+from calibcoach.coverage.guidance import COLUMN_WORDS, ROW_WORDS, sentence_for, zone
+from calibcoach.coverage.virtual_view import BoardGeometry
+from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.sim import LENSES
+from calibcoach.drivers.sim_person import SimulatedPerson
+
+BOARD = calibcoach.BoardSpec()
+TRUTH_LIMIT_PX = {"webcam720": 0.05, "wide720": 0.1, "fisheye150": 0.1}  # issue 9's bar, over the covered region
+
+
+# --- words and targets agree (no rendering) -----------------------------------------------------
+
+_ZONE_OF_WORDS = {
+    "the centre": (2, 1), "left of centre": (1, 1), "right of centre": (3, 1), "the left edge": (0, 1), "the right edge": (4, 1),
+    "the top centre": (2, 0), "the bottom centre": (2, 2), "the top-left corner": (0, 0), "the top-right corner": (4, 0),
+    "the bottom-left corner": (0, 2), "the bottom-right corner": (4, 2), "the upper left": (1, 0),
+    "the upper right": (3, 0), "the lower left": (1, 2), "the lower right": (3, 2),
+}
+
+
+def parse(sentence: str) -> dict:
+    """Read a guidance sentence back: image zone, tilt per edge (signed degrees), range (m)."""
+    m = re.fullmatch(r"Board (?:to )?(?P<where>.+?), (?P<tilt>facing the camera|.+?), (?P<range>[0-9.]+) m away\.", sentence)
+    assert m, sentence
+    tilts = {"x": 0.0, "y": 0.0}
+    if m["tilt"] != "facing the camera":
+        for edge, deg in re.findall(r"(top|bottom|left|right) edge(?: tilted away)? ~(\d+)°", m["tilt"]):
+            axis, sign = {"top": ("x", 1), "bottom": ("x", -1), "right": ("y", 1), "left": ("y", -1)}[edge]
+            tilts[axis] = sign * float(deg)
+        assert any(tilts.values()), sentence
+    return {"zone": _ZONE_OF_WORDS[m["where"]], "tilt_x": tilts["x"], "tilt_y": tilts["y"], "range": float(m["range"])}
+
+
+@pytest.mark.parametrize("lens", ["webcam720", "wide720", "fisheye150"])
+def test_every_candidate_sentence_says_what_its_target_is(lens: str) -> None:
+    from calibcoach.app.guide import target_of
+    from calibcoach.app.solve.next_view import RankedPose
+
+    camera = LENSES[lens]
+    geometry = BoardGeometry.of(BOARD)
+    candidates = candidate_poses(camera, geometry, ranges_for(camera, geometry))
+    assert len(candidates) > 100
+    zones = set()
+    for cand in candidates:
+        target = target_of(RankedPose(cand, 0.1, 0.0, 0.1), camera, geometry.centre_m)
+        said = parse(sentence_for(target, camera.image_size))
+        assert said["zone"] == zone(target.centre_px, camera.image_size)
+        assert said["tilt_x"] == pytest.approx(target.tilt_x_deg, abs=2.5)  # said to the nearest 5 deg
+        assert said["tilt_y"] == pytest.approx(target.tilt_y_deg, abs=2.5)
+        assert said["range"] == pytest.approx(target.distance_m, abs=0.05)
+        # the target's pose puts the board's centre where the words say, at the range they say
+        centre_cam = cv2_rotate(target.rvec, geometry.centre_m) + target.tvec_m
+        assert np.linalg.norm(centre_cam) == pytest.approx(target.distance_m, rel=1e-6)
+        assert camera.project(centre_cam.reshape(1, 3))[0] == pytest.approx(target.centre_px, abs=1e-3)
+        zones.add(said["zone"])
+    # every zone has a name of its own; all are asked for where a board can register there (a
+    # 150 deg fisheye's image corners lie ~80 deg off axis, where the markers squeeze below reading)
+    assert len(zones) == len(COLUMN_WORDS) * len(ROW_WORDS) or (lens == "fisheye150" and len(zones) >= 11)
+
+
+def cv2_rotate(rvec: np.ndarray, point: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(rvec, np.float64))[0] @ point
+
+
+def test_regions_beyond_a_fisheyes_image_circle_are_not_required() -> None:
+    # a 190 deg circular fisheye on a 16:9 sensor: the image corners are black, no board is ever there
+    circular = CameraModel("fisheye", [[300.0, 0, 639.5], [0, 300.0, 359.5], [0, 0, 1]], [0.0, 0.0, 0.0, 0.0], (1280, 720))
+    session = calibcoach.Assistant(board=BOARD, image_size=(1280, 720), model="fisheye").session
+    session.camera = circular
+    session._candidates_camera = None
+    session._refresh_lens()
+    reachable = session.selector.coverage.reachable
+    assert not reachable[0, 0] and not reachable[-1, -1] and not reachable[0, -1] and not reachable[-1, 0]
+    assert reachable[1:-1, 1:-1].sum() >= 6  # the middle of the image circle is asked for
+    assert not session.selector.coverage.is_complete()
+
+
+# --- the closed loop ----------------------------------------------------------------------------
+
+
+def _run(lens: str, strategy: str, *, seed: int, max_s: float):
+    camera = LENSES[lens]
+    assistant = calibcoach.Assistant(board=BOARD, image_size=camera.image_size, model="auto")
+    person = SimulatedPerson(camera, BOARD, strategy, seed=seed, fps=8)
+    run = person.run(assistant.feed, max_s=max_s)
+    return camera, assistant, run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lens", ["webcam720", "wide720", "fisheye150"])
+def test_a_person_following_the_guidance_gets_an_automatic_trusted_stop(lens: str) -> None:
+    camera, assistant, run = _run(lens, "guided", seed=11, max_s=90.0)
+    assert run.stopped_at_s is not None and run.stopped_at_s <= 90.0, assistant.session.progress()
+    steps = run.steps
+    assert all(s.guidance.target is not None for s in steps if not s.progress.done)  # never "keep moving"
+    assert steps[-1].guidance.target is None and steps[-1].progress.done
+    for sentence in {s.guidance.sentence for s in steps if s.guidance.target is not None}:
+        parse(sentence)  # every instruction names a place, a tilt (or facing) and a range
+    # the same target never comes back at the end of three holds in a row without a frame accepted
+    accepted = {s.frame_index for s in steps if s.accepted}
+    streak = longest = 0
+    previous = None
+    for hold in run.holds:
+        asked = None if hold.asked is None else (hold.asked.centre_px, hold.asked.tilt_x_deg, hold.asked.tilt_y_deg)
+        registered = any(hold.start_s * 8 - 10 <= i <= hold.end_s * 8 for i in accepted)
+        streak = streak + 1 if (asked is not None and asked == previous and not registered) else 1
+        longest, previous = max(longest, streak), asked
+    assert longest < 3
+    result = assistant.finish()
+    assert result.verdict.trusted, result.verdict.reasons
+    views = result.session.calibration.views
+    estimate = CameraModel(result.model, result.camera_matrix, result.dist_coeffs, camera.image_size)
+    mask = covered_region_mask(camera.image_size, [v.image_points_px for v in views], (32, 18))
+    truth_px = projection_difference(camera, estimate, grid=(32, 18), mask=mask).rms_px
+    assert truth_px <= TRUTH_LIMIT_PX[lens]
+    # E is honest: the true error lies within the band bench/guided.py measured (README)
+    assert 0.3 < truth_px / result.expected_error_px < 2.5
+
+
+@pytest.mark.slow
+def test_a_lazy_frontal_capture_is_refused() -> None:
+    _camera, assistant, run = _run("webcam720", "lazy", seed=11, max_s=30.0)
+    assert run.stopped_at_s is None  # nothing it shows completes the coverage
+    result = assistant.finish()
+    assert not result.verdict.trusted and result.verdict.grade == "insufficient"
+    assert any("Coverage is only" in r for r in result.verdict.reasons)
