@@ -77,7 +77,7 @@ def step_record(outcome: FrameOutcome, timestamp_ns: int) -> dict:
                   "outline_px": t.outline_px.tolist()}
     return {
         "frame_index": outcome.frame_index, "timestamp_ns": int(timestamp_ns), "accepted": d.accepted, "reason": d.reason,
-        "detail": d.detail, "guidance": {"sentence": g.sentence, "target": target, "why": g.why},
+        "detail": d.detail, "guidance": {"sentence": g.sentence, "target": target, "why": g.why, "hint": g.hint},
         "progress": {"frames_accepted": p.frames_accepted, "coverage": p.coverage, "expected_error_px": p.expected_error_px,
                      "target_px": p.target_px, "done": p.done, "stop_reason": p.stop_reason},
     }

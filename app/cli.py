@@ -7,6 +7,7 @@ computed but is not trustworthy (coverage or uncertainty insufficient), 130 inte
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -22,6 +23,17 @@ def _size(text: str) -> tuple[int, int]:
     if w <= 0 or h <= 0:
         raise argparse.ArgumentTypeError(f"sizes must be positive, got {text!r}")
     return w, h
+
+
+def _frame_budget(text: str) -> int:
+    """--max-frames: a calibration needs at least MIN_VIEWS_TO_STOP distinct frames to be trusted."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames such as 60, got {text!r}") from None
+    if value < 15:
+        raise argparse.ArgumentTypeError(f"{value} frames cannot make a trusted calibration; pass at least 15 (default 60)")
+    return value
 
 
 def _crop(text: str) -> tuple[int, int, int, int]:
@@ -87,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="distortion model (auto: field of view + cross-validation)")
     cal.add_argument("--accept-partial", action="store_true",
                      help="write camera_matrix.npy/dist_coeffs.npy even when coverage or uncertainty is insufficient")
-    cal.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
+    cal.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
     cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
     cal.add_argument("--every-frame", action="store_true",
@@ -102,6 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--to", type=_size, help="new image size after a uniform resize, e.g. 640x360")
     sc.add_argument("--crop", type=_crop, help="crop x,y,width,height applied BEFORE the resize")
     sc.add_argument("--out", type=Path, required=True, help="output folder")
+    sc.add_argument("--accept-partial", action="store_true",
+                    help="scale a calibration calibcoach refused (outputs are named *_untrusted)")
 
     lv = sub.add_parser("live", help="guide a live capture (camera, or a file paced like one) until calibrated")
     lv.add_argument("--source", required=True,
@@ -121,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--allow-autofocus", action="store_true", help="run on a camera whose focus cannot be locked")
     lv.add_argument("--model", choices=("auto", "pinhole", "rational", "fisheye"), default="auto")
     lv.add_argument("--accept-partial", action="store_true", help="write the .npy files even when not trusted")
-    lv.add_argument("--max-frames", type=int, default=60, help="most frames kept for the solve (default 60)")
+    lv.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     lv.add_argument("--no-stop", action="store_true", help="keep capturing after the stop rule is met")
     lv.add_argument("--write-to-device", action="store_true",
                     help="DepthAI: also flash the result into the camera's EEPROM (the old calibration is backed up)")
@@ -182,6 +196,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("calibcoach: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a path that cannot be read or written: the input's problem, said in one line
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"calibcoach: error: {exc.strerror or exc}{where}; check the path and its permissions", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - every command's errors end here, as one line
+        if os.environ.get("CALIBCOACH_DEBUG"):
+            raise
+        print(f"calibcoach: internal error: {type(exc).__name__}: {exc} -- please report it with the command line; "
+              "CALIBCOACH_DEBUG=1 shows the traceback", file=sys.stderr)
+        return 1
     parser.error(f"unknown command {args.command}")
     return 2
 

@@ -75,12 +75,32 @@ def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) 
     )
 
 
+def board_for_source(args: argparse.Namespace, board: BoardSpec, stored: dict | None) -> BoardSpec:
+    """The board of a source that carries its own (a recording), with explicit options overriding it.
+
+    Each of --squares, --square-mm, --marker-mm, --dictionary, --legacy, --inverted given on the
+    command line replaces that field of the stored board, with a notice; --board replaces it whole.
+    """
+    if not stored or args.board:
+        return board
+    values = BoardSpec.from_dict(dict(stored)).to_dict()
+    explicit = {"squares_x": board.squares_x if args.squares else None, "squares_y": board.squares_y if args.squares else None,
+                "square_mm": args.square_mm, "marker_mm": args.marker_mm,
+                "dictionary": board.dictionary if args.dictionary else None,
+                "legacy": True if args.legacy else None, "inverted": True if args.inverted else None}
+    changed = {k: v for k, v in explicit.items() if v is not None and v != values.get(k)}
+    if changed:
+        said = ", ".join(f"{k} {values.get(k)!r} -> {v!r}" for k, v in changed.items())
+        print(f"calibcoach: the recording's board overridden by the command line: {said}", file=sys.stderr)
+    values.update(changed)
+    return BoardSpec.from_dict(values)
+
+
 def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
     source = open_source(args.source)
     info = source.info
     settings = session_settings(args, info, live=False)
-    if info.board and not (args.board or args.squares):
-        board = BoardSpec.from_dict(dict(info.board))  # a recording knows its board
+    board = board_for_source(args, board, None if info.board is None else dict(info.board))  # a recording knows its board
     print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)
     with open_replay_viewer(args) as viewer:
         progress = ProgressLine(info.frame_count, enabled=not args.quiet)
@@ -177,7 +197,8 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
     keep_serving(viewer)
     if not verdict.trusted:
         if not args.accept_partial:
-            print("camera_matrix.npy/dist_coeffs.npy were NOT written (pass --accept-partial to write them anyway)")
+            print("no camera files (camera_matrix.npy, dist_coeffs.npy, calibration.yaml, camera_info.yaml) were written: "
+                  "a refused calibration must not be loaded as a camera (--accept-partial writes them as *_untrusted)")
         if stats.passed_over:
             print(f"the folder was read sparsely ({stats.passed_over} frames passed over as repeats of their neighbours); "
                   "a hurried capture may hold a few more usable frames: try again with --every-frame")
@@ -186,26 +207,37 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
 
 
 def scale_command(args: argparse.Namespace) -> int:
+    from calibcoach.app.outputs.camera_reader import load_trust
     from calibcoach.app.outputs.files import load_camera, write_npy, write_opencv_yaml, write_ros_camera_info
 
     camera = load_camera(args.calibration)
+    trusted, reasons = load_trust(args.calibration)
+    if not trusted and not args.accept_partial:
+        why = f" ({reasons[0]})" if reasons else ""
+        raise CalibcoachError(f"{args.calibration} is a calibration calibcoach refused{why}; capture again, or pass "
+                              "--accept-partial to scale it anyway (the outputs are then named *_untrusted)")
     if args.to is None and args.crop is None:
         raise CalibcoachError("scale needs --to WxH and/or --crop x,y,w,h")
-    if args.crop:
-        camera = camera.cropped(*args.crop)
-    if args.to:
-        try:
+    try:
+        if args.crop:
+            camera = camera.cropped(*args.crop)
+        if args.to:
             camera = camera.resized(args.to)
-        except ValueError as exc:
-            raise CalibcoachError(str(exc)) from None
+    except ValueError as exc:
+        raise CalibcoachError(f"{exc}; pass a crop inside the image and a size of the same aspect") from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_npy(out, camera)
-    write_opencv_yaml(out / "calibration.yaml", camera, rms_px=None, extra={"derived_from": str(args.calibration)})
-    write_ros_camera_info(out / "camera_info.yaml", camera, camera_name="calibcoach")
+    suffix = "" if trusted else "_untrusted"
+    extra: dict[str, object] = {"derived_from": str(args.calibration), "trusted": trusted}
+    if not trusted:
+        extra["untrusted_because"] = reasons or ["the source calibration was not trusted"]
+    written = [*write_npy(out, camera, suffix=suffix),
+               write_opencv_yaml(out / f"calibration{suffix}.yaml", camera, rms_px=None, extra=extra),
+               write_ros_camera_info(out / f"camera_info{suffix}.yaml", camera, camera_name="calibcoach",
+                                     untrusted_because=[] if trusted else (reasons or ["the source calibration was not trusted"]))]
     K = camera.camera_matrix
     print(f"{camera.image_size[0]}x{camera.image_size[1]}: fx {K[0, 0]:.3f} fy {K[1, 1]:.3f} cx {K[0, 2]:.3f} cy {K[1, 2]:.3f}; "
-          f"distortion unchanged; wrote camera_matrix.npy, dist_coeffs.npy, calibration.yaml, camera_info.yaml to {out}")
+          f"distortion unchanged; wrote {', '.join(p.name for p in written)} to {out}")
     return 0
 
 

@@ -108,19 +108,19 @@ class Guide:
             and abs(pose.distance_m / cand.range_m - 1.0) <= NEAR_RANGE
         )
 
-    def guidance(self, *, done: bool) -> Guidance:
-        """The instruction to show now."""
+    def guidance(self, *, done: bool, hint: str = "") -> Guidance:
+        """The instruction to show now; `hint` says how to hold the board when the frames ask for it."""
         if done:
             return Guidance("Done: hold on, calibrating.", None, "the stop rule is met")
         best = self.best
         if best is None or self._camera is None:
             return Guidance("Hold the board up in front of the camera, facing it, about an arm's length away.",
-                            None, "no board seen yet")
+                            None, "no board seen yet", hint)
         target = target_of(best, self._camera, self.board_centre_m)
         why = f"cuts the expected error by {best.error_cut * 100:.0f}%"
         if best.coverage_gain > 0:
             why += f", fills {best.coverage_gain * 100:.1f}% of the coverage"
-        return Guidance(sentence_for(target, self.image_size), target, why)
+        return Guidance(sentence_for(target, self.image_size), target, why, hint)
 
 
 def target_of(ranked: RankedPose, camera: CameraModel, board_centre_m: np.ndarray) -> Target:

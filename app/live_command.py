@@ -10,9 +10,9 @@ from pathlib import Path
 from typing import Any
 
 from calibcoach.app.assistant import step_record
-from calibcoach.app.commands import error_words, keep_serving, open_viewer, session_settings
+from calibcoach.app.commands import board_for_source, error_words, keep_serving, open_viewer, session_settings
 from calibcoach.app.live import LiveStats, PacedSource, run_live
-from calibcoach.app.outputs.report import write_session_outputs
+from calibcoach.app.outputs.report import untrusted_name, write_session_outputs
 from calibcoach.app.session import FrameOutcome
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.base import Frame, FrameSource
@@ -135,8 +135,7 @@ def live_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str])
         raise CalibcoachError("pass either --record DIR (a new recording) or --resume DIR (continue one), not both")
     source, focus = open_live_source(args)
     info = source.info
-    if info.board and not (args.board or args.squares):
-        board = BoardSpec.from_dict(dict(info.board))
+    board = board_for_source(args, board, None if info.board is None else dict(info.board))
     print(f"calibcoach: live on {info.description}; board {board.describe()}", file=sys.stderr)
     with source, open_viewer(args) as viewer:
         locked = lock_focus(args, source, focus)
@@ -181,20 +180,24 @@ def _finish_live(args: argparse.Namespace, argv: list[str], info: Any, session: 
         replay_seconds=stats.seconds, frames_read=stats.frames_processed, stopped_early=stats.stopped_early,
         lens_state=lens_state,
     )
-    if info.kind == "depthai" and (result.verdict.trusted or args.accept_partial):
+    trusted = bool(result.verdict.trusted)
+    lens = int(locked["lens_position"]) if "lens_position" in locked else None
+    if info.kind == "depthai" and (trusted or args.accept_partial):
         from calibcoach.drivers.oak import write_depthai_calibration
 
-        lens = int(locked["lens_position"]) if "lens_position" in locked else None
-        written.append(write_depthai_calibration(Path(args.out) / "depthai_calibration.json", result.calibration.camera,
-                                                 lens_position=lens))
-        if args.write_to_device:
-            from calibcoach.drivers.oak_device import flash_intrinsics
+        name = "depthai_calibration.json" if trusted else untrusted_name("depthai_calibration.json")
+        written.append(write_depthai_calibration(Path(args.out) / name, result.calibration.camera, lens_position=lens,
+                                                 untrusted=not trusted))
+    if args.write_to_device and info.kind == "depthai" and trusted:
+        from calibcoach.drivers.oak_device import flash_intrinsics
 
-            backup = flash_intrinsics(info.camera_id or None, result.calibration.camera, lens_position=lens,
-                                      backup_path=Path(args.out) / "depthai_calibration_before.json")
-            print(f"calibcoach: flashed CAM_A intrinsics to the device; its previous calibration is in {backup}")
+        backup = flash_intrinsics(info.camera_id or None, result.calibration.camera, lens_position=lens,
+                                  backup_path=Path(args.out) / "depthai_calibration_before.json")
+        print(f"calibcoach: flashed CAM_A intrinsics to the device; its previous calibration is in {backup}")
     elif args.write_to_device:
-        print("calibcoach: --write-to-device applies to trusted DepthAI calibrations only; nothing was flashed",
+        # never flashed without a trusted result, --accept-partial or not: the EEPROM outlives this run
+        why = "the calibration is not trusted" if not trusted else f"the source is {info.kind}, not a DepthAI camera"
+        print(f"calibcoach: --write-to-device flashes trusted DepthAI calibrations only; {why}, nothing was flashed",
               file=sys.stderr)
     viewer.log_result(result, Path(args.out))
     written.append(Path(args.out) / "session.rrd")

@@ -1,36 +1,31 @@
 """The calibration session: one frame in, one decision out; the same for live cameras and replay.
 
 `CalibrationSession.process(frame, detection)` runs pose estimation, the selector's gates and
-coverage bookkeeping, solves incrementally as frames are accepted, and says when the stop rule is
-met (coverage complete AND projection uncertainty below target). `finish()` runs the final robust
-solve, chooses the model, maps the uncertainty and judges the result. Detection is done by the
-caller (the replay runner detects ahead on worker threads; a live loop on the newest frame).
+coverage bookkeeping; after each accepted frame it solves incrementally, re-reads the coverage
+with the new intrinsics, recomputes the expected projection error E, re-ranks the candidate poses
+for the guide (the next-best pose) and checks the stop rule: coverage complete and E at its
+target, or diminishing returns, or the frame budget full. `finish()` runs the final robust solve,
+chooses the model, maps the uncertainty and judges the result. Detection is done by the caller
+(`calibcoach.Assistant`, which the replay and live loops use, looks one frame ahead).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from calibcoach.app.guide import Guide
+from calibcoach.app.session_types import FrameOutcome, Progress, SessionResult, SessionSettings
 from calibcoach.app.solve.calibrate import pose_for_view, solve
 from calibcoach.app.solve.model_choice import choose_model
-from calibcoach.app.solve.next_view import error_cut, rank_poses
-from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict, View
-from calibcoach.app.solve.robust import (
-    look_alike_correlation,
-    look_alike_weights,
-    noise_sigma_px,
-    robust_calibrate,
-)
+from calibcoach.app.solve.next_view import RankedPose, error_cut, fill_from_reserve, rank_poses
+from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, View
+from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
 from calibcoach.app.solve.uncertainty import (
     covariance_from_information,
     covered_region_mask,
-    information_gain,
-    intrinsic_covariance,
     intrinsic_names,
     marginal_information,
     projection_uncertainty,
@@ -38,20 +33,26 @@ from calibcoach.app.solve.uncertainty import (
 )
 from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.candidates import CandidatePose, candidate_poses, ranges_for
+from calibcoach.coverage.candidates import (
+    CandidatePose,
+    candidate_poses,
+    lens_moved_px,
+    ranges_for,
+    reachable_cells,
+)
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
-from calibcoach.coverage.grid import CoverageMap, CoverageRequirements, region_grid_shape
-from calibcoach.coverage.guidance import Guidance
+from calibcoach.coverage.grid import CoverageMap, region_grid_shape
 from calibcoach.coverage.pose import BoardPose, estimate_pose
 from calibcoach.coverage.select import (
+    AcceptedView,
     Decision,
     FrameSelector,
-    SelectorSettings,
     accepted_view,
     board_motion_px,
-    edge_blur_px,
+    look_alike,
     look_alike_groups,
 )
+from calibcoach.coverage.sharpness import edge_blur
 from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
@@ -62,28 +63,18 @@ MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
 FULL_MODEL_VIEWS = 12  # below this the incremental solve uses the reduced bootstrap model
 MIN_VIEWS_TO_STOP = 15  # never stop on fewer frames: the model choice cross-validates two halves of >= 8
 # Diminishing returns: stop once the best pose calibcoach could ask for would cut E by less than
-# this. E falls about as 1 / sqrt(frames), so at a 3% cut per frame ten more poses (~20 s of a
+# this. E falls about as 1 / sqrt(frames), so at a 3% cut per pose ten more poses (~20 s of a
 # person's time) would buy less than a quarter; pose_calib stops each parameter at < 10% per frame.
-# On the closed-loop simulator this point came after 20-35 diverse frames, about a minute.
+# On the closed-loop simulator this came after 20-35 diverse frames, within about a minute.
 DIMINISHING_CUT = 0.03
 ACCEPT_SHARE = 0.5  # a frame without new coverage is kept when it cuts E by half what the best target would
 MIN_ACCEPT_CUT = 0.005  # and by at least 0.5%
 _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 _CHOICE_PER_BUDGET_FRAME = 1.5  # usable frames per budget frame below which a replay reads more
-_MIN_FILL_GAIN = 0.002  # a reserve frame must cut the mean pixel variance by 0.2% to be worth solving with
 
 
 _LENS_MOVED_PX = 2.0
-
-
-def _lens_moved_px(a: CameraModel, b: CameraModel) -> float:
-    """Largest pixel shift between two models over a 9 x 5 grid of a's image (inf on a model change)."""
-    if a.model != b.model:
-        return float("inf")
-    w, h = a.image_size
-    grid = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 9) * w, np.linspace(0.05, 0.95, 5) * h), -1).reshape(-1, 2)
-    moved = b.project(a.unproject(grid)) - grid
-    return float(np.max(np.linalg.norm(moved, axis=1))) if np.all(np.isfinite(moved)) else float("inf")
+_FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
 
 
 def _detection_of(view: View) -> Detection:
@@ -94,63 +85,6 @@ def _detection_of(view: View) -> Detection:
 def _view_of(frame: Frame, detection: Detection) -> View:
     return View(frame.index, frame.name, detection.ids.copy(), detection.corners_px.astype(np.float64),
                 detection.object_points_m.astype(np.float64))
-
-
-@dataclass(frozen=True, slots=True)
-class SessionSettings:
-    model: str = "auto"  # "auto" | "pinhole" | "rational" | "fisheye"
-    selector: SelectorSettings = field(default_factory=SelectorSettings)
-    hfov_guess_deg: float = 70.0  # bootstrap intrinsics for pose estimates before the first solve
-    stop_when_done: bool = True
-    error_target_px: float | None = None  # stop rule's E target; None = derived from the corner noise (verdict.py)
-    coverage: CoverageRequirements = field(default_factory=CoverageRequirements)
-    use_motion_gate: bool = True  # off for folders of independent photos
-
-
-@dataclass(frozen=True, slots=True)
-class Progress:
-    frames_seen: int
-    frames_accepted: int
-    coverage: float  # 0..1, of what this lens can show
-    expected_error_px: float | None  # E over the covered region; None before the first incremental solve
-    target_px: float | None  # the stop rule's E target; None until the corner noise is measured
-    uncertainty_p95_px: float | None  # secondary: p95 of the worst-direction sigma over the covered region
-    best_next_cut: float | None  # relative cut of E the current target would bring
-    rejections: dict[str, int]
-    done: bool
-    stop_reason: str = ""  # why the stop rule fired, once it has
-
-
-@dataclass(frozen=True, slots=True)
-class FrameOutcome:
-    frame_index: int
-    frame_name: str
-    detection: Detection
-    pose: BoardPose | None
-    decision: Decision
-    blur_px: float | None
-    motion_px_s: float | None
-    guidance: Guidance
-    progress: Progress
-    camera: CameraModel  # the intrinsics the pose was estimated with (the bootstrap guess before any solve)
-    coverage: CoverageMap  # the session's live map (shared, not a copy: read it before the next frame)
-    board_centre_px: np.ndarray | None = None  # (2,) float64 where the board's centre is in this frame (from the pose)
-
-
-@dataclass(frozen=True, slots=True)
-class SessionResult:
-    calibration: Calibration
-    model_choice: ModelChoice
-    uncertainty: UncertaintyMap
-    verdict: Verdict
-    coverage: CoverageMap  # rebuilt from the final solve's poses
-    board: BoardSpec  # with the print's legacy/inverted settled
-    rejections: dict[str, int]
-    frames_seen: int
-    check_image: np.ndarray | None  # one accepted frame, for the undistortion check picture
-    noise_px: float  # corner noise per coordinate the final solve measured (dof-corrected RMS)
-    target_px: float  # the E target the verdict judged against
-    stop_reason: str  # why the capture ended ("" when the source simply ran out)
 
 
 class CalibrationSession:
@@ -187,6 +121,7 @@ class CalibrationSession:
         self._candidates_camera: CameraModel | None = None  # the intrinsics the candidates were built with
         self.guide = Guide(image_size, self.geometry.centre_m)
         self.stop_reason = ""
+        self._recent: list[str] = []  # decisions of the last frames that showed a usable board
         self.look_alike_correlation = 0.0  # residual correlation of look-alike frames in the final solve
         self._done = False
         self.accepting = True  # a live session turns this off when the focus drifts
@@ -242,18 +177,19 @@ class CalibrationSession:
             gated = Decision(False, "frame limit", f"capture complete ({self.stop_reason})", quality=0.0)
         blur = None
         if gated is None:
-            blur = edge_blur_px(frame.grey(), detection.corners_px)
+            edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
+            blur = edges.sharp_px
             best = self.guide.best
             needed = max(MIN_ACCEPT_CUT, ACCEPT_SHARE * (best.error_cut if best is not None else 0.0))
             decision, contribution = self.selector.decide(
-                frame.index, detection, pose, motion_px_s=motion, blur_px=blur,
+                frame.index, detection, pose, motion_px_s=motion, blur_px=blur, edges=edges,
                 uncertainty_gain=lambda: self._error_cut(detection, pose), uncertainty_needed=needed,
                 just_appeared=just_appeared,
             )
         else:
             decision, contribution = gated, None
         self.selector.record(decision)
-        if not decision.accepted and decision.quality > 0.05:
+        if not decision.accepted and decision.quality >= 1.0:
             self._reserve.append((_view_of(frame, detection), decision.quality))  # usable later: see _fill_budget
         if decision.accepted and contribution is not None:
             self.selector.commit(frame.index, detection, pose, contribution, blur_px=blur)
@@ -328,12 +264,24 @@ class CalibrationSession:
                         initial=self.camera if self.camera.model == self.working_model else None)
         except CalibrationError:
             return None
-        if self.settings.model == "auto" and self.working_model == "pinhole" and raw.camera.field_of_view_deg()[0] > 110.0:
-            self.working_model = "fisheye"  # a pinhole model cannot follow this lens even for guidance
-            try:
-                raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
-            except CalibrationError:
-                return None
+        if self.settings.model == "auto" and self.working_model == "pinhole":
+            # A pinhole model cannot follow a fisheye even for guidance, and its wrong focal length
+            # sends the person to ranges where the board is too small to read. Either its field of
+            # view says so, or the reduced fisheye fits the same frames clearly better (on a 150 deg
+            # lens the reduced pinhole was seen to miss by 50 px of expected error and stall the capture).
+            fisheye = None
+            if reduced:  # decided while the data is thin; later solves start from the working model
+                try:
+                    fisheye = solve(self.views, self.image_size, "fisheye", reduced=True)
+                except CalibrationError:
+                    pass
+            wide = raw.camera.field_of_view_deg()[0] > 110.0
+            if wide or (fisheye is not None and fisheye.rms_px < _FISHEYE_FITS_BETTER * raw.rms_px):
+                self.working_model = "fisheye"
+                try:
+                    raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
+                except CalibrationError:
+                    return None
         self.camera = raw.camera
         n_points = sum(v.ids.size for v in self.views)
         self.noise_px = noise_sigma_px(raw.rms_px, n_points=n_points, n_params=len(intrinsic_names(raw.camera.model)),
@@ -348,21 +296,12 @@ class CalibrationSession:
         a pixel, which change neither which poses register nor where the board would be.
         """
         ranges = ranges_for(self.camera, self.geometry)
-        if self._candidates_camera is None or _lens_moved_px(self._candidates_camera, self.camera) > _LENS_MOVED_PX:
+        if self._candidates_camera is None or lens_moved_px(self._candidates_camera, self.camera) > _LENS_MOVED_PX:
             self._candidates = candidate_poses(self.camera, self.geometry, ranges)
             self._candidates_camera = self.camera
         old = self.selector.coverage
-        rows, cols = region_grid_shape(self.image_size)
-        reach = np.zeros((rows, cols))
-        w, h = self.image_size
-        for cand in self._candidates:  # the most corners any candidate puts into each cell
-            px = cand.view.image_points_px
-            r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
-            c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
-            counts = np.zeros((rows, cols))
-            np.add.at(counts, (r, c), 1.0)
-            reach = np.maximum(reach, counts)
-        reachable = reach >= old.requirements.corners_per_region_cell
+        reachable = reachable_cells(self._candidates, self.image_size, region_grid_shape(self.image_size),
+                                    old.requirements.corners_per_region_cell)
         self.selector.coverage = CoverageMap(self.image_size, old.requirements, ranges=ranges, reachable=reachable)
         for view in self.views:
             det = _detection_of(view)
@@ -375,8 +314,6 @@ class CalibrationSession:
         if information is None or weight is None or not self.views:
             # Nothing seen yet: ask for the easiest view, the board facing the camera at the centre, mid range.
             first = [c for c in self._candidates if c.key[0] == 2 and c.key[1] == 1 and c.key[2] == 0 and c.key[3] == "mid"]
-            from calibcoach.app.solve.next_view import RankedPose
-
             self.guide.update([RankedPose(c, 1.0, 0.0, 1.0) for c in first], self.camera, accepted=len(self.views))
             return
         ranking = rank_poses(self.camera, information, weight, self._candidates, self.selector.coverage,
@@ -399,7 +336,7 @@ class CalibrationSession:
         best = self.guide.best
         if complete and target is not None and E <= target:
             self._stop(f"coverage complete and E {E:.3f} px within its {target:.3f} px target")
-        elif best is None or (best.error_cut < DIMINISHING_CUT and best.coverage_gain <= 0.0):
+        elif best is None or (best.coverage_gain <= 0.0 and best.error_cut < DIMINISHING_CUT):
             cut = 0.0 if best is None else best.error_cut
             self._stop(f"diminishing returns: the best next pose would cut E ({E:.3f} px) by only {cut * 100:.1f}%")
 
@@ -428,8 +365,27 @@ class CalibrationSession:
             px = self.camera.project((pose_matrix(pose.rvec) @ self.geometry.centre_m + pose.tvec).reshape(1, 3))[0]
             centre = px if np.all(np.isfinite(px)) else None
         return FrameOutcome(frame.index, frame.name, detection, pose, decision, blur, motion,
-                            self.guide.guidance(done=self._done), self.progress(), self.camera, self.selector.coverage,
-                            centre)
+                            self.guide.guidance(done=self._done, hint=self._holding_hint(decision)), self.progress(),
+                            self.camera, self.selector.coverage, centre)
+
+    def _holding_hint(self, decision: Decision) -> str:
+        """Say how to hold the board when most recent frames with a board were smeared or soft.
+
+        Over the last 30 frames that showed a usable board: more than 60% "moving" means the hand
+        is not still during the exposure; more than 60% "blurred", the focus or the light.
+        """
+        if decision.reason not in ("no board", "too few corners", "collinear"):
+            self._recent.append(decision.reason)
+            del self._recent[:-30]
+        if len(self._recent) < 15:
+            return ""
+        share = {r: self._recent.count(r) / len(self._recent) for r in ("moving", "blurred")}
+        if share["moving"] > 0.6:
+            return ("Most frames are smeared: hold the board still for a second at each pose (rest your elbows); "
+                    "more light lets the camera use a shorter exposure.")
+        if share["blurred"] > 0.6:
+            return "Most frames are soft: check the focus (lock it where the board is held) and add light."
+        return ""
 
     # --- the end --------------------------------------------------------------------------------
     def finish(self) -> SessionResult:
@@ -485,12 +441,12 @@ class CalibrationSession:
         )
 
     def _fill_budget(self) -> None:
-        """Spend the unused frame budget on the reserve frames that shrink the uncertainty most.
+        """Spend the unused frame budget on distinct reserve frames that shrink the uncertainty most.
 
-        During capture a frame must beat an average kept frame to be accepted, which keeps the
-        guidance honest; but a solve on 60 well-chosen frames beats one on 30, so before the final
-        solve the free budget is filled greedily by information gain (each pick updates the
-        information matrix, so look-alikes of what is already in lose their value at once).
+        During capture a frame must cut E by half what the guidance's target would, which keeps the
+        guidance honest; frames the live selection passed over that show a pose of their own (not a
+        look-alike of a kept or added frame) still help the final solve, greedily by information
+        gain (`next_view.fill_from_reserve`).
         """
         budget = self.settings.selector.max_frames - len(self.views)
         if budget <= 0 or not self._reserve:
@@ -502,23 +458,23 @@ class CalibrationSession:
                 return
             self.camera = raw.camera
             self._information = marginal_information(raw.camera, self.views, raw.rvecs, raw.tvecs)
-        candidates: list[tuple[View, np.ndarray, np.ndarray]] = []
-        for view, quality in self._reserve:
-            pose = pose_for_view(self.camera, view)
-            if pose is not None:
-                # a frame of quality q counts as if its corner noise were sigma / sqrt(q)
-                J_intr, J_pose = (np.sqrt(quality) * J for J in view_jacobian(self.camera, view.object_points_m, *pose))
-                if np.all(np.isfinite(J_intr)) and np.all(np.isfinite(J_pose)):
-                    candidates.append((view, J_intr, J_pose))
-        information = self._information
-        added: list[View] = []
-        while candidates and len(added) < budget:
-            gains = [information_gain(information, Ji, Jp, weight=self._error_weight) for _v, Ji, Jp in candidates]
-            best = int(np.argmax([g for _S, g in gains]))
-            if gains[best][1] < _MIN_FILL_GAIN:
-                break
-            information = gains[best][0]
-            added.append(candidates.pop(best)[0])
+        looks: dict[int, AcceptedView | None] = {}
+
+        def look(view: View) -> AcceptedView | None:
+            if view.frame_index not in looks:
+                det = _detection_of(view)
+                pose = self._pose(det)
+                looks[view.frame_index] = None if pose is None else accepted_view(view.frame_index, det, pose)
+            return looks[view.frame_index]
+
+        diagonal = float(np.hypot(*self.image_size))
+
+        def alike(a: View, b: View) -> bool:
+            la, lb = look(a), look(b)
+            return la is not None and lb is not None and look_alike(la, lb, self.settings.selector, diagonal)
+
+        added = fill_from_reserve(self.camera, self._information, self._error_weight, self._reserve, budget,
+                                  alike=alike, kept=self.views)
         self.budget_fill = (len(added), len(self._reserve))
         self.views = sorted(self.views + added, key=lambda v: v.frame_index)
 
@@ -534,22 +490,12 @@ class CalibrationSession:
     def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:
         """The final covariance with each hold's look-alike frames counted for what they add.
 
-        The solve uses every frame; its covariance would treat them as independent. How much
-        look-alikes share is measured from their residuals (`robust.look_alike_correlation`):
-        on the closed-loop simulator at 1x supersampling they shared ~half (counting them as
-        independent put the true error at 1.5-2x E), on 2x-supersampled renders far less.
+        See `robust.with_look_alikes_weighted`; the groups are the selector's look-alike test
+        on the final solve's poses.
         """
-        groups = self._look_alike_groups(calibration.views, calibration.camera)
-        if len(set(groups)) == len(groups):
-            return calibration
-        rho = look_alike_correlation(calibration.views, calibration.residuals_px, groups)
-        views = tuple(replace(v, information_weight=w)
-                      for v, w in zip(calibration.views, look_alike_weights(groups, rho), strict=True))
-        noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
-                               n_params=len(calibration.intrinsic_names), n_views=len(views))
-        covariance = intrinsic_covariance(calibration.camera, views, calibration.rvecs, calibration.tvecs, sigma_px=noise)
-        self.look_alike_correlation = rho
-        return replace(calibration, views=views, intrinsic_covariance=covariance)
+        weighted, self.look_alike_correlation = with_look_alikes_weighted(
+            calibration, self._look_alike_groups(calibration.views, calibration.camera))
+        return weighted
 
     def _final_coverage(self, calibration: Calibration) -> CoverageMap:
         """The coverage map again, with tilts and ranges from the final solve's intrinsics."""

@@ -342,10 +342,11 @@ class Viewer:
         g = outcome.guidance
         target = g.target
         rec = self.recording
-        key = (g.sentence, None if target is None else tuple(np.round(target.outline_px.reshape(-1), 1)))
+        key = (g.sentence, g.hint, None if target is None else tuple(np.round(target.outline_px.reshape(-1), 1)))
         if key != self._last_guidance:
             self._last_guidance = key
-            rec.log(paths.GUIDANCE, rr.TextDocument(f"## {g.sentence}\n\n{g.why}", media_type=rr.MediaType.MARKDOWN))
+            hint = f"\n\n**{g.hint}**" if g.hint else ""
+            rec.log(paths.GUIDANCE, rr.TextDocument(f"## {g.sentence}\n\n{g.why}{hint}", media_type=rr.MediaType.MARKDOWN))
             if target is None:
                 rec.log(paths.TARGET, rr.Clear(recursive=False))
             else:

@@ -54,7 +54,7 @@ def session_blueprint() -> rrb.Blueprint:
             rrb.TimeSeriesView(origin="progress", contents=[f"+ /{ACCEPTED}", f"+ /{COVERAGE_PCT}", f"+ /{PROCESSED_FPS}"],
                                name="Frames kept / coverage % / processed fps"),
             rrb.TimeSeriesView(origin="progress", contents=[f"+ /{EXPECTED_ERROR}", f"+ /{ERROR_TARGET}"],
-                               name="Uncertainty p95 vs target, px"),
+                               name="Expected error E vs target, px"),
             rrb.BarChartView(origin=TILT_DISTANCE, name="Tilts: frontal, top/bottom/left/right away, steep x/y | far, mid, near"),
             rrb.TextLogView(origin=DECISIONS, name="Decisions"),
             row_shares=[2, 1, 1, 1, 1],

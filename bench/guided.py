@@ -34,7 +34,7 @@ from calibcoach.app.solve.uncertainty import covered_region_mask
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim import LENSES
-from calibcoach.drivers.sim_person import STRATEGIES, SimulatedPerson
+from calibcoach.drivers.sim_person import HANDS, STRATEGIES, SimulatedPerson
 
 ROOT = Path(__file__).resolve().parent
 LENS_NAMES = ("webcam720", "wide720", "fisheye150")
@@ -144,7 +144,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--lenses", nargs="+", default=list(LENS_NAMES), choices=sorted(LENSES))
     parser.add_argument("--strategies", nargs="+", default=list(STRATEGIES), choices=STRATEGIES)
-    parser.add_argument("--hands", nargs="+", default=["steady"], choices=["steady", "shaky"])
+    parser.add_argument("--hands", nargs="+", default=["steady"], choices=sorted(HANDS))
     parser.add_argument("--fps", type=float, default=10.0)
     parser.add_argument("--max-s", type=float, default=120.0)
     parser.add_argument("--jobs", type=int, default=2)

@@ -17,6 +17,11 @@ import numpy as np
 from calibcoach.drivers.errors import BoardError
 
 DICTIONARY_NAMES = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+# Sizes a printed board's squares and markers can have: below 1 mm no camera resolves the bits of
+# a marker at a focusable distance; above 2 m it is a wall, not a board (and OpenCV's board
+# geometry overflows long before 1e300 mm).
+MIN_SIZE_MM = 1.0
+MAX_SIZE_MM = 2000.0
 
 
 def dictionary_id(name: str) -> int:
@@ -50,8 +55,25 @@ class BoardSpec:
     inverted: bool | None = None  # white-on-black print; None = detect automatically
 
     def __post_init__(self) -> None:
+        for name in ("squares_x", "squares_y"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
+                    or not float(value).is_integer():
+                raise BoardError(f"{name} must be a whole number of squares, got {value!r}: count the squares along the "
+                                 f"board's {'width' if name == 'squares_x' else 'height'} (e.g. --squares 8x11)")
+            object.__setattr__(self, name, int(value))
         if self.squares_x < 2 or self.squares_y < 2:
             raise BoardError(f"a ChArUco board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
+        for name in ("square_mm", "marker_mm"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating) \
+                    or not np.isfinite(value) or not MIN_SIZE_MM <= float(value) <= MAX_SIZE_MM:
+                flag = "--square-mm" if name == "square_mm" else "--marker-mm"
+                raise BoardError(f"{name.replace('_mm', '')} size {value!r} mm is not a printed board's: measure it on the "
+                                 f"print and pass it in millimetres ({flag}, between {MIN_SIZE_MM:g} mm and {MAX_SIZE_MM:g} mm)")
+            object.__setattr__(self, name, float(value))
+        if not isinstance(self.dictionary, str):
+            raise BoardError(f"dictionary must be a name such as DICT_5X5_100, got {self.dictionary!r}")
         if not 0 < self.marker_mm < self.square_mm:
             raise BoardError(
                 f"marker size {self.marker_mm} mm must be positive and smaller than the square size {self.square_mm} mm"

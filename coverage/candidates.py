@@ -16,6 +16,7 @@ board corner stays `MIN_RANGE_M` in front of the lens, and its tilt is at most 5
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,3 +105,33 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
                 out.append(CandidatePose((ix, iy, it, name), (float(centre[0]), float(centre[1])), float(rng), name,
                                          float(tx), float(ty), view))
     return out
+
+
+def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, int], grid_shape: tuple[int, int],
+                    need: int) -> np.ndarray:
+    """(rows, cols) bool: region cells into which some candidate puts at least `need` detectable corners.
+
+    These are the cells a board can be seen in on this lens: a fisheye's black corners, or image
+    corners beyond ~85 deg where no board can be read, are not among them.
+    """
+    rows, cols = grid_shape
+    w, h = image_size
+    reach = np.zeros((rows, cols))
+    for cand in candidates:
+        px = cand.view.image_points_px
+        r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
+        c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
+        counts = np.zeros((rows, cols))
+        np.add.at(counts, (r, c), 1.0)
+        reach = np.maximum(reach, counts)
+    return reach >= need
+
+
+def lens_moved_px(a: CameraModel, b: CameraModel) -> float:
+    """Largest pixel shift between two models over a 9 x 5 grid of a's image (inf on a model change)."""
+    if a.model != b.model:
+        return float("inf")
+    w, h = a.image_size
+    grid = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 9) * w, np.linspace(0.05, 0.95, 5) * h), -1).reshape(-1, 2)
+    moved = b.project(a.unproject(grid)) - grid
+    return float(np.max(np.linalg.norm(moved, axis=1))) if np.all(np.isfinite(moved)) else float("inf")

@@ -39,6 +39,7 @@ class Guidance:
     sentence: str
     target: Target | None
     why: str = ""  # what the target is for, e.g. "cuts the expected error by 9%"
+    hint: str = ""  # how to hold it, when the frames say so (e.g. most of them smeared)
 
 
 def zone(centre_px: tuple[float, float], image_size: tuple[int, int]) -> tuple[int, int]:

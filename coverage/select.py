@@ -3,9 +3,12 @@
 Gates, cheapest first (each rejection is counted with its reason):
 1. at least 6 ChArUco corners (the method's minimum);
 2. not collinear: the corners span at least two board rows and two columns and a real area;
-3. still: the corners moved less than `max_speed_px_s` since the previous frame (motion blur and
-   rolling shutter bend corners by exactly the amount the board moves during readout);
-4. sharp: the estimated edge blur is below `max_blur_px`;
+3. still: the board did not smear during the exposure by more than `max_smear_px`, as measured in
+   the frame itself (`sharpness.py`: the blur of the edges across the motion against the blur of
+   the edges along it). A hand's jitter between frames (a pixel or two) is no harm; a board in
+   transit is. Inter-frame corner speed is only a hint, used while the camera's own sharpness is
+   not yet known (the first three kept frames), when a smear along a board diagonal cannot be seen;
+4. sharp: the estimated edge blur is below `max_blur_px` and twice the camera's own;
 5. diverse: not a near-duplicate of an accepted frame, and it fills unmet coverage or shrinks the
    calibration's uncertainty. Twenty look-alike frames are worse than ten diverse ones.
 """
@@ -15,12 +18,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import Contribution, CoverageMap
 from calibcoach.coverage.pose import BoardPose
+from calibcoach.coverage.sharpness import EdgeBlur
 
 REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred", "duplicate", "adds nothing", "frame limit",
                   "focus drift")
@@ -30,7 +33,24 @@ REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred
 class SelectorSettings:
     min_corners: int = 6
     min_spread: float = 0.25  # minor/major principal spread of the corners on the board; 0 = a line
-    max_speed_px_s: float = 25.0  # at 1280 px width (scaled): 0.5 px of smear in a 20 ms exposure
+    # Smear within the exposure, px. Measured on renders (720p, uniform smear centred on the frame's
+    # time): corners keep their accuracy (bias < 0.01 px, noise unchanged) up to 3 px and start to be
+    # lost at 4 px; 1.5 px keeps half that margin for what renders lack (acceleration during the
+    # exposure, rolling shutter), and lies above the measure's own scatter (~0.5 px) on still frames.
+    max_smear_px: float = 1.5
+    # ... counted only where it widens the edges by more than this over their reference: the edge
+    # width measure scatters by ~5% between frames of one camera (3 sigma), and a smear that widens
+    # a soft image's edges by less changes its corners by less than that.
+    min_smear_widening: float = 1.15
+    # The speed hint until the camera's own sharpness is known, at 1280 px width (scaled): 0.5 px
+    # of smear in a 20 ms exposure. Only for the first three kept frames.
+    max_speed_px_s: float = 25.0
+    # Above this corner speed a frame is in transit whatever its edges say, at 1280 px width
+    # (scaled): 7x the median of a real handheld video (11 px/s at 720p, shared/notes/guidance.md),
+    # near the p95 of the simulator's shaky hand (4x real). On the closed-loop simulator, frames
+    # at 100-140 px/s that the smear measure let through, taken into the final solve, tripled the
+    # true error of one webcam capture (0.024 -> 0.081 px); a rolling shutter would skew them too.
+    transit_speed_px_s: float = 80.0
     max_blur_px: float = 3.0  # estimated gaussian edge blur, px, whatever the other frames look like
     max_blur_ratio: float = 2.0  # and at most this multiple of the median blur of the frames kept so far
     min_coverage_gain: float = 0.0015  # share of the whole coverage map a frame must add
@@ -94,33 +114,6 @@ def board_motion_px(previous: Detection | None, current: Detection) -> float | N
     return float(np.median(np.linalg.norm(previous.corners_px[ia] - current.corners_px[ib], axis=1)))
 
 
-def edge_blur_px(grey: np.ndarray, corners_px: np.ndarray) -> float:
-    """Estimated gaussian blur sigma of the board's edges, px.
-
-    For an edge of contrast C blurred by a gaussian of sigma s, the steepest gradient is
-    C / (s * sqrt(2 pi)); so s ~ C / (sqrt(2 pi) * g_max), with C and g_max taken as robust
-    percentiles inside the corners' bounding box. Scale-free, so it works near and far.
-    """
-    x0, y0 = np.floor(corners_px.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(corners_px.max(axis=0)).astype(int)
-    h, w = grey.shape
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1 + 1, w), min(y1 + 1, h)
-    roi = grey[y0:y1, x0:x1]
-    if roi.shape[0] < 8 or roi.shape[1] < 8:
-        return float("inf")
-    roi = roi.astype(np.float32)
-    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    g = np.sqrt(gx * gx + gy * gy)
-    g_max = float(np.percentile(g, 99.5))
-    contrast = float(np.percentile(roi, 95) - np.percentile(roi, 5))
-    if g_max <= 1e-6 or contrast < 10:
-        return float("inf")
-    # A perfectly sharp edge sampled by pixels still spreads over ~1 px: subtract that floor in quadrature.
-    sigma = contrast / (np.sqrt(2 * np.pi) * g_max)
-    return float(np.sqrt(max(sigma * sigma - 0.5**2, 0.0)))
-
-
 class FrameSelector:
     """Decides frame by frame; owns the coverage map and the list of accepted views."""
 
@@ -141,6 +134,7 @@ class FrameSelector:
         self._diag = float(np.hypot(*image_size))
         self._blurs: list[float] = []  # edge blur of the frames kept, px
         self._speed_limit = self.settings.max_speed_px_s * image_size[0] / 1280.0
+        self._transit_limit = self.settings.transit_speed_px_s * image_size[0] / 1280.0
 
     def gate(self, detection: Detection) -> Decision | None:
         """The hard per-frame gates (1-2): frames failing them are of no use at all. None = passed."""
@@ -159,6 +153,10 @@ class FrameSelector:
         """Edge blur (px) of every frame kept so far: this camera's own sharpness baseline."""
         return list(self._blurs)
 
+    def own_sharpness_px(self) -> float | None:
+        """This camera's sharpness: the median edge blur of the frames kept so far (None before three)."""
+        return float(np.median(self._blurs)) if len(self._blurs) >= 3 else None
+
     def blur_limit_px(self) -> float:
         """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""
         s = self.settings
@@ -174,6 +172,7 @@ class FrameSelector:
         *,
         motion_px_s: float | None,
         blur_px: float | None,
+        edges: EdgeBlur | None = None,
         uncertainty_gain: Callable[[], float] | None = None,
         uncertainty_needed: float | None = None,
         just_appeared: bool = False,
@@ -186,9 +185,10 @@ class FrameSelector:
         guidance asked is kept). Without it: 1.5 / (frames kept + 1), clearly more than an
         average kept frame's share.
 
-        Moving and softly blurred frames are rejected for the live capture (the person should hold
-        still), but keep a `quality` < 1: the weight their corners deserve if the final solve has
-        budget to spare (a moving board's corners are noisier, never worthless).
+        `edges` are the frame's edge widths (`sharpness.edge_blur`), from which the smear is read;
+        None falls back on the speed alone.
+        Smeared frames get quality 0: they never enter the final solve. Softly blurred frames keep
+        a `quality` < 1 for the record; the final solve takes only frames of quality 1.
         """
         s = self.settings
         gated = self.gate(detection)
@@ -202,9 +202,24 @@ class FrameSelector:
             # is smeared by the deceleration (0.4 px coherent corner shifts seen in simulation) while
             # the speed to the next frame already looks still.
             return Decision(False, "moving", "board just came into view", quality=0.25), None
-        if motion_px_s is not None and motion_px_s > self._speed_limit:
-            quality = min(quality, (self._speed_limit / motion_px_s) ** 2)
-            return Decision(False, "moving", f"{motion_px_s:.0f} px/s, limit {self._speed_limit:.0f}", quality=quality), None
+        own = self.own_sharpness_px()
+        if motion_px_s is not None and motion_px_s > self._transit_limit:
+            return Decision(False, "moving", f"{motion_px_s:.0f} px/s: in transit (limit {self._transit_limit:.0f})",
+                            quality=0.0), None
+        moving_hint = motion_px_s is not None and motion_px_s > self._speed_limit
+        if edges is not None:
+            along = edges.along_smear_px()
+            if along > s.max_smear_px and edges.along_widening() > s.min_smear_widening:
+                return Decision(False, "moving", f"smeared {along:.1f} px during the exposure, limit {s.max_smear_px:.1f}",
+                                quality=0.0), None
+            if own is not None and moving_hint:  # a diagonal smear looks like defocus unless the board moved
+                diagonal = edges.diagonal_smear_px(own)
+                if diagonal > s.max_smear_px and edges.diagonal_widening(own) > s.min_smear_widening:
+                    return Decision(False, "moving", f"smeared {diagonal:.1f} px along a board diagonal, limit "
+                                    f"{s.max_smear_px:.1f} ({motion_px_s:.0f} px/s)", quality=0.0), None
+        if moving_hint and (own is None or edges is None or not np.isfinite(edges.sharp_px)):
+            return Decision(False, "moving", f"{motion_px_s:.0f} px/s, limit {self._speed_limit:.0f} until this camera's "
+                            "own sharpness is known", quality=0.0), None
         blur_limit = self.blur_limit_px()
         if blur_px is not None and blur_px > blur_limit:
             quality = min(quality, (blur_limit / blur_px) ** 2)

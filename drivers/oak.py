@@ -211,15 +211,18 @@ class DepthAIReplay(FrameSource):
 
 
 def write_depthai_calibration(path: str | Path, camera: CameraModel, *, socket: str = "CAM_A",
-                              lens_position: int | None = None) -> Path:
+                              lens_position: int | None = None, untrusted: bool = False) -> Path:
     """Write `camera` as a DepthAI calibration JSON (what `CalibrationHandler(path)` reads back).
 
     DepthAI keeps 14 coefficients per camera: OpenCV's order k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty
     for `Perspective`, Kannala-Brandt k1..k4 for `Fisheye`; unused ones are zero. The lens position
     is stored when known because the intrinsics are only valid at that focus. The file is only
     written here; flashing it to a device's EEPROM is a separate, explicitly requested step.
+    `untrusted` writes "UNTRUSTED" into the file's product name, the one free-text field the format has.
     """
     handler = apply_intrinsics(dai.CalibrationHandler(), camera, socket=socket, lens_position=lens_position)
+    if untrusted:
+        handler.setProductName("UNTRUSTED calibcoach calibration (refused; see calibration.json)")
     out = Path(path)
     if not handler.eepromToJsonFile(out):
         raise CalibcoachError(f"DepthAI could not write the calibration file {out}; check that the folder "

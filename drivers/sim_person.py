@@ -48,7 +48,11 @@ if TYPE_CHECKING:  # drivers is the bottom layer: the board type is only named, 
     from calibcoach.coverage.board import BoardSpec
 
 STRATEGIES = ("guided", "careful", "lazy")
-HANDS = {"steady": (0.0004, 0.05), "shaky": (0.0025, 0.35)}  # tremor amplitude (metres, degrees)
+# Tremor amplitude (metres, degrees), set from a real handheld 30 fps board video (shared/notes/
+# guidance.md): its board moved a median 17 px/s at 1080p, ~11 px/s at 720p. "steady" reproduces
+# that median on the 720p webcam at 0.6 m (12 px/s), "shaky" is 4x it (48 px/s, 1.6 px a frame),
+# "very shaky" 10x (an arm held out for minutes, or a moving platform).
+HANDS = {"steady": (0.00018, 0.022), "shaky": (0.0007, 0.09), "very shaky": (0.0018, 0.22)}
 CENTRE_ERROR = 0.04  # share of the image width / height, 1 sigma
 TILT_ERROR_DEG = 6.0
 RANGE_ERROR = 0.08  # relative
@@ -75,6 +79,7 @@ class PersonRun:
     frames: int = 0
     stopped_at_s: float | None = None  # capture time of the step that said done
     steps: list[Any] = field(default_factory=list)  # every non-None step the callback returned
+    true_poses: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # T_cam_board of frame i at its timestamp
 
 
 class SimulatedPerson:
@@ -166,6 +171,7 @@ class SimulatedPerson:
 
             frame_t = np.ceil(t / dt - 1e-9) * dt
             while frame_t < segment_end and frame_t < max_s:
+                out.true_poses.append(pose_at(frame_t))
                 step = feed(self._render(pose_at, frame_t, out.frames), int(round(frame_t * 1e9)))
                 out.frames += 1
                 if step is not None:

@@ -58,8 +58,54 @@ def load_camera(path: str | Path, *, image_size: tuple[int, int] | None = None) 
     )
 
 
+def load_trust(path: str | Path) -> tuple[bool, list[str]]:
+    """(trusted, reasons) of a calibration file: calibcoach's verdict where the file or a
+    calibration.json beside it carries one, "untrusted" in the file name, or a `trusted` key of an
+    OpenCV YAML / `calibcoach_trusted` of a ROS camera_info. Files of other tools carry none: trusted.
+    """
+    path = Path(path)
+    folder = path if path.is_dir() else path.parent
+    names = [path.name] if not path.is_dir() else [p.name for p in folder.glob("*.npy")]
+    if any("untrusted" in name for name in names):
+        return False, _reasons_beside(folder)
+    candidates = [path] if path.suffix == ".json" else []
+    if path.is_dir() or path.suffix == ".npy":
+        candidates.append(folder / "calibration.json")
+    for candidate in candidates:
+        if candidate.is_file():
+            try:
+                data = json.loads(candidate.read_text(errors="replace"))
+            except json.JSONDecodeError:
+                continue
+            verdict = data.get("verdict") if isinstance(data, dict) else None
+            if isinstance(verdict, dict) and "trusted" in verdict:
+                return bool(verdict["trusted"]), [str(r) for r in verdict.get("reasons", [])[1:4]]  # [0] is the RMS table
+    if path.is_file() and path.suffix in (".yaml", ".yml", ".xml"):
+        text = path.read_text(errors="replace")
+        if "calibcoach_trusted: false" in text:
+            return False, [line.strip("# ").strip() for line in text.splitlines()[1:4] if line.startswith("#")]
+        if text.lstrip().startswith("%YAML") or path.suffix == ".xml":
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+            try:
+                node = fs.getNode("trusted")
+                if not node.empty() and int(node.real()) == 0:
+                    return False, _reasons_beside(folder)
+            finally:
+                fs.release()
+    return True, []
+
+
+def _reasons_beside(folder: Path) -> list[str]:
+    note = folder / "UNTRUSTED.txt"
+    if note.is_file():
+        return [line[2:].strip() for line in note.read_text(errors="replace").splitlines() if line.startswith("- ")][:3]
+    return []
+
+
 def _load_npy_folder(folder: Path, image_size: tuple[int, int] | None) -> CameraModel:
     k_path, d_path = folder / "camera_matrix.npy", folder / "dist_coeffs.npy"
+    if not k_path.is_file() and (folder / "camera_matrix_untrusted.npy").is_file():  # --accept-partial's names
+        k_path, d_path = folder / "camera_matrix_untrusted.npy", folder / "dist_coeffs_untrusted.npy"
     missing = [p.name for p in (k_path, d_path) if not p.is_file()]
     if missing:
         raise CalibcoachError(f"{folder} has no {' or '.join(missing)}; pass the output folder of a calibcoach run")

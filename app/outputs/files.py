@@ -25,7 +25,7 @@ import math
 import os
 import re
 import secrets
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
@@ -106,8 +106,11 @@ def opencv_dist_layout(camera: CameraModel) -> np.ndarray:
 # --- writers --------------------------------------------------------------------------------------
 
 
-def write_npy(out_dir: str | Path, camera: CameraModel) -> tuple[Path, Path]:
+def write_npy(out_dir: str | Path, camera: CameraModel, *, suffix: str = "") -> tuple[Path, Path]:
     """Write `camera_matrix.npy` (3, 3) and `dist_coeffs.npy` in OpenCV's layout (see module docstring).
+
+    `suffix` goes before the extension (`camera_matrix_untrusted.npy`): an .npy file cannot say
+    inside that it is untrusted, so its name must.
 
     The image size and model are not in these files; `load_camera` takes them from a
     `calibration.json` beside them, or from its `image_size` argument and the coefficient count.
@@ -117,7 +120,7 @@ def write_npy(out_dir: str | Path, camera: CameraModel) -> tuple[Path, Path]:
     """
     out_dir = Path(out_dir)
     paths = []
-    for name, array in (("camera_matrix.npy", camera.camera_matrix), ("dist_coeffs.npy", opencv_dist_layout(camera))):
+    for name, array in ((f"camera_matrix{suffix}.npy", camera.camera_matrix), (f"dist_coeffs{suffix}.npy", opencv_dist_layout(camera))):
         buf = io.BytesIO()
         np.save(buf, np.ascontiguousarray(array, dtype=np.float64))
         paths.append(atomic_write_bytes(out_dir / name, buf.getvalue()))
@@ -203,7 +206,8 @@ def ros_camera_name(name: str) -> str:
     return clean or "camera"
 
 
-def write_ros_camera_info(path: str | Path, camera: CameraModel, *, camera_name: str) -> Path:
+def write_ros_camera_info(path: str | Path, camera: CameraModel, *, camera_name: str,
+                          untrusted_because: Sequence[str] = ()) -> Path:
     """Write a ROS camera_info YAML in the layout `camera_calibration` and `camera_info_manager` write.
 
     `distortion_model` is plumb_bob (5 coefficients), rational_polynomial (8) or equidistant (the 4
@@ -211,7 +215,8 @@ def write_ros_camera_info(path: str | Path, camera: CameraModel, *, camera_name:
     is the identity and the projection matrix is [K | 0]: a monocular camera rectified to its own K.
     Numbers are written at full precision, always with a decimal point, so YAML 1.1 readers (PyYAML,
     which `camera_info_manager_py` uses) parse them as floats. `camera_name` goes through
-    `ros_camera_name`.
+    `ros_camera_name`. With `untrusted_because`, the file opens with comment lines saying so and
+    why, and carries `calibcoach_trusted: false` (ROS's parsers ignore keys they do not know).
     """
     K = camera.camera_matrix
     P = np.hstack([K, np.zeros((3, 1))])
@@ -227,6 +232,10 @@ def write_ros_camera_info(path: str | Path, camera: CameraModel, *, camera_name:
         *_ros_matrix("projection_matrix", P),
         "",
     ]
+    if untrusted_because:
+        notice = ["# UNTRUSTED calibration (calibcoach refused it; written because of --accept-partial):"]
+        notice += [f"#   {reason.encode('ascii', 'replace').decode()}" for reason in untrusted_because]
+        lines = notice + lines[:-1] + ["calibcoach_trusted: false", ""]
     return atomic_write_bytes(path, "\n".join(lines).encode("ascii"))
 
 

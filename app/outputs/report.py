@@ -1,7 +1,8 @@
 """Write everything a finished session produces into the output folder.
 
-Files other tools read (`camera_matrix.npy`, `dist_coeffs.npy` -- only for a trusted result unless
-the user accepts a partial one --, `calibration.json`, `calibration.yaml`, `camera_info.yaml`) and
+Files other tools read as a camera (`camera_matrix.npy`, `dist_coeffs.npy`, `calibration.yaml`,
+`camera_info.yaml`, DepthAI's JSON) only for a trusted result -- or, when the user accepts a
+partial one, under names carrying "untrusted" --, `calibcoach`'s own `calibration.json` always, and
 pictures a person reads (coverage map, tilt/distance bars, residual map, per-frame errors,
 uncertainty map, undistorted check image).
 """
@@ -72,11 +73,12 @@ def write_session_outputs(
     cal = result.calibration
     camera = cal.camera
     written: list[Path] = []
-    if result.verdict.trusted or accept_partial:
-        written += list(write_npy(out_dir, camera))
-    else:
-        for stale in ("camera_matrix.npy", "dist_coeffs.npy"):
-            (out_dir / stale).unlink(missing_ok=True)  # never leave an earlier run's matrix beside a refusal
+    for stale in CAMERA_FILES:  # never leave an earlier run's camera beside this result
+        for name in (stale, untrusted_name(stale)):
+            (out_dir / name).unlink(missing_ok=True)
+    (out_dir / UNTRUSTED_NOTE).unlink(missing_ok=True)
+    trusted = bool(result.verdict.trusted)
+    suffix = "" if trusted else "_untrusted"
     coverage_summary = result.coverage.summary()
     coverage_summary["rejections"] = {k: v for k, v in result.rejections.items() if v}
     coverage_summary["frames_seen"] = result.frames_seen
@@ -94,17 +96,44 @@ def write_session_outputs(
     payload["uncertainty"]["target_px"] = result.target_px
     payload["uncertainty"]["noise_px"] = result.noise_px
     written.append(write_calibration_json(out_dir / "calibration.json", payload))
-    written.append(write_opencv_yaml(out_dir / "calibration.yaml", camera, rms_px=cal.rms_px, extra={
-        "frames_used": len(cal.views),
-        "verdict": result.verdict.grade,
-        "trusted": bool(result.verdict.trusted),
-        "uncertainty_p95_covered_px": result.uncertainty.p95_covered_px,
-        "uncertainty_p95_whole_image_px": result.uncertainty.p95_px,
-    }))
-    written.append(write_ros_camera_info(out_dir / "camera_info.yaml", camera, camera_name=source_info.camera_id or "camera"))
+    if trusted or accept_partial:
+        # A refused calibration writes nothing a downstream tool would load as a camera; with
+        # --accept-partial every such file carries "untrusted" in its name and, where the format
+        # can hold it, says so inside with the verdict's reasons.
+        because = [] if trusted else list(result.verdict.reasons)
+        written += list(write_npy(out_dir, camera, suffix=suffix))
+        extra: dict[str, object] = {
+            "frames_used": len(cal.views),
+            "verdict": result.verdict.grade,
+            "trusted": trusted,
+            "expected_error_px": result.uncertainty.expected_error_px,
+            "uncertainty_p95_covered_px": result.uncertainty.p95_covered_px,
+            "uncertainty_p95_whole_image_px": result.uncertainty.p95_px,
+        }
+        if because:
+            extra["untrusted_because"] = because
+        written.append(write_opencv_yaml(out_dir / f"calibration{suffix}.yaml", camera, rms_px=cal.rms_px, extra=extra))
+        written.append(write_ros_camera_info(out_dir / f"camera_info{suffix}.yaml", camera,
+                                             camera_name=source_info.camera_id or "camera", untrusted_because=because))
+        if because:
+            note = ("This calibration was REFUSED by calibcoach and written only because --accept-partial was given.\n"
+                    "Its camera files carry 'untrusted' in their names. Why:\n" + "".join(f"- {r}\n" for r in because))
+            written.append(atomic_write_bytes(out_dir / UNTRUSTED_NOTE, note.encode("utf-8")))
     written.append(write_detections(out_dir / "detections.npz", cal.views))
     written += _pictures(out_dir, result)
     return written
+
+
+# Files a downstream tool loads as a camera: written for trusted calibrations, and under an
+# "untrusted" name (`untrusted_name`) with --accept-partial; never for a refused one otherwise.
+CAMERA_FILES = ("camera_matrix.npy", "dist_coeffs.npy", "calibration.yaml", "camera_info.yaml", "depthai_calibration.json")
+UNTRUSTED_NOTE = "UNTRUSTED.txt"
+
+
+def untrusted_name(name: str) -> str:
+    """'camera_info.yaml' -> 'camera_info_untrusted.yaml'."""
+    stem, dot, ext = name.rpartition(".")
+    return f"{stem}_untrusted{dot}{ext}"
 
 
 def write_detections(path: Path, views: Sequence[View]) -> Path:

@@ -118,6 +118,28 @@ def look_alike_weights(groups: Sequence[int], correlation: float) -> list[float]
     return [(1.0 + (sizes[g] - 1) * (1.0 - correlation)) / sizes[g] for g in groups]
 
 
+def with_look_alikes_weighted(calibration: Calibration, groups: Sequence[int]) -> tuple[Calibration, float]:
+    """The calibration with its covariance recomputed, look-alike frames counted for what they add.
+
+    The solve uses every frame; its covariance would treat them all as independent. How much the
+    frames of one group share is measured from their residuals (`look_alike_correlation`); each
+    then carries `look_alike_weights` as its View.information_weight. Measured on the closed-loop
+    simulator at 1x supersampling: counting look-alikes as independent put the true error at
+    1.5-2x E; weighted, 1.0-1.3x.
+
+    Returns:
+        (calibration, residual correlation rho); unchanged with rho 0 when no two frames look alike.
+    """
+    if len(set(groups)) == len(groups):
+        return calibration, 0.0
+    rho = look_alike_correlation(calibration.views, calibration.residuals_px, groups)
+    views = tuple(replace(v, information_weight=w) for v, w in zip(calibration.views, look_alike_weights(groups, rho), strict=True))
+    noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
+                           n_params=len(calibration.intrinsic_names), n_views=len(views))
+    covariance = intrinsic_covariance(calibration.camera, views, calibration.rvecs, calibration.tvecs, sigma_px=noise)
+    return replace(calibration, views=views, intrinsic_covariance=covariance), rho
+
+
 def noise_sigma_px(rms_px: float, *, n_points: int, n_params: int, n_views: int) -> float:
     """Per-coordinate corner noise from a solve's RMS (per point), corrected for the fitted parameters.
 

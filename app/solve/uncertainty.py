@@ -412,19 +412,3 @@ def information_gain(information: np.ndarray, J_intr: np.ndarray, J_pose: np.nda
     before = float(np.sum(W * covariance_from_information(information)))  # trace(W C), W and C symmetric
     after = float(np.sum(W * covariance_from_information(S_new)))
     return S_new, max(0.0, 1.0 - after / before) if before > 0 else 0.0
-
-
-def information_gain_p95(information: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray, *, jacobian: np.ndarray) -> tuple[np.ndarray, float]:
-    """As `information_gain`, scoring the relative drop of the uncertainty map's 95th percentile.
-
-    Args:
-        information, J_intr, J_pose: as for `information_gain`.
-        jacobian: (..., 2, P) float64 as for `pixel_variance_weight` (the noise scale cancels).
-
-    Returns:
-        (P, P) float64 new S, and the drop in [0, 1].
-    """
-    S_new = schur_update(information, J_intr, J_pose)
-    before = float(np.percentile(projection_sigma(jacobian, covariance_from_information(information)), 95))
-    after = float(np.percentile(projection_sigma(jacobian, covariance_from_information(S_new)), 95))
-    return S_new, max(0.0, 1.0 - after / before) if before > 0 else 0.0

@@ -91,11 +91,12 @@ def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path,
     assert data["verdict"]["grade"] == "insufficient" and data["verdict"]["trusted"] is False
     assert data["board"]["inverted"] is True
     assert not (out / "camera_matrix.npy").exists()
-    assert "NOT written" in stdout
+    assert "no camera files" in stdout
     code, _, _ = run_cli(capsys, "calibrate", str(root / "video" / "cam_0.mp4"), "--board", str(root / "charuco.toml"),
                          "--out", str(out), "--quiet", "--accept-partial")
     assert code == 3
-    K = np.load(out / "camera_matrix.npy")
+    assert not (out / "camera_matrix.npy").exists()  # under --accept-partial the name says what it is
+    K = np.load(out / "camera_matrix_untrusted.npy")
     assert K.shape == (3, 3) and 700 < K[0, 0] < 1100
 
 
@@ -136,3 +137,13 @@ def test_scale_and_board_commands(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert code == 2 and "aspect ratio" in err
     code, out, _ = run_cli(capsys, "board", "--out", str(tmp_path / "board.svg"))
     assert code == 0 and "30.01" in (tmp_path / "board.svg").read_text()
+
+
+def test_explicit_board_options_override_a_recordings_board_with_a_notice(recordings_dir: Path, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    # the recording stores 30.01 / 22.01 mm; a re-measured print says 30.2 / 22.15: that is what must be solved with
+    code, _, err = run_cli(capsys, "calibrate", str(recordings_dir / "frontal_webcam720"), "--out", str(tmp_path / "o"), "--quiet",
+                           "--square-mm", "30.2", "--marker-mm", "22.15")
+    assert "overridden by the command line: square_mm 30.01 -> 30.2, marker_mm 22.01 -> 22.15" in err
+    assert "squares 30.2 mm, markers 22.15 mm" in err  # the banner says what is used
+    assert json.loads((tmp_path / "o" / "calibration.json").read_text())["board"]["square_mm"] == 30.2

@@ -146,3 +146,33 @@ def test_a_lazy_frontal_capture_is_refused() -> None:
     result = assistant.finish()
     assert not result.verdict.trusted and result.verdict.grade == "insufficient"
     assert any("Coverage is only" in r for r in result.verdict.reasons)
+
+
+@pytest.mark.slow
+def test_a_noisy_webcam_finishes_too_and_the_verdict_names_the_noise() -> None:
+    # corner noise of a poor real webcam (0.5 px per coordinate: compression, rolling shutter, dim
+    # light), put onto the detected corners of rendered frames: the stop must still fire by itself
+    from dataclasses import replace
+
+    from calibcoach.coverage.detector import CharucoBoardDetector
+    from calibcoach.drivers.base import Frame
+
+    camera = LENSES["webcam720"]
+    assistant = calibcoach.Assistant(board=BOARD, image_size=camera.image_size)
+    detector = CharucoBoardDetector(BOARD)
+    rng = np.random.default_rng(5)
+    count = 0
+
+    def feed(image: np.ndarray, timestamp_ns: int):
+        nonlocal count
+        detection = detector.detect(image)
+        noisy = replace(detection, corners_px=(detection.corners_px + rng.normal(0, 0.5, detection.corners_px.shape)).astype(np.float32))
+        count += 1
+        return assistant.feed_detected(Frame(count - 1, timestamp_ns, image), noisy)
+
+    run = SimulatedPerson(camera, BOARD, "guided", seed=12, fps=8).run(feed, max_s=120.0)
+    assert run.stopped_at_s is not None and run.stopped_at_s <= 120.0, assistant.session.progress()
+    result = assistant.finish()
+    assert result.session.noise_px == pytest.approx(0.5, rel=0.25)
+    assert any("What limits it: corner noise" in r for r in result.verdict.reasons), result.verdict.reasons
+    assert result.verdict.grade in ("acceptable", "poor") and result.verdict.rms_grade != "excellent"

@@ -201,3 +201,11 @@ def test_guidance_jsonl_writes_every_step_for_other_programs(recordings_dir: Pat
         assert len(target["rvec"]) == 3 and len(target["tvec_m"]) == 3 and len(target["outline_px"]) == 4
         assert target["distance_m"] == pytest.approx(float(np.linalg.norm(target["tvec_m"])), rel=0.5)
         assert set(s["progress"]) >= {"frames_accepted", "coverage", "expected_error_px", "target_px", "done"}
+
+
+def test_write_to_device_never_flashes_an_untrusted_calibration(recordings_dir: Path, tmp_path: Path, capsys) -> None:
+    code = main(["live", "--source", str(recordings_dir / "frontal_webcam720"), "--out", str(tmp_path / "o"), "--no-viewer",
+                 "--quiet", "--accept-partial", "--write-to-device"])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert "flashes trusted DepthAI calibrations only; the calibration is not trusted, nothing was flashed" in err

@@ -353,3 +353,45 @@ def test_npy_with_unusable_coefficients_is_refused(tmp_path: Path) -> None:
     np.save(tmp_path / "dist_coeffs.npy", np.ones((1, 6)))
     with pytest.raises(CalibcoachError, match="6 distortion coefficients match no model"):
         load_camera(tmp_path, image_size=SIZE)
+
+
+# --- refused calibrations (issue 11) ------------------------------------------------------------
+
+def _camera_files(folder: Path) -> list[str]:
+    """What a downstream tool would load as a camera: .npy matrices, OpenCV YAML, ROS camera_info."""
+    return sorted(p.name for p in folder.iterdir() if p.suffix in (".npy", ".yaml", ".yml") or p.name.startswith("depthai"))
+
+
+def test_a_refused_capture_writes_no_camera_file_and_scale_refuses_it(recordings_dir: Path, tmp_path: Path) -> None:
+    from calibcoach.app.cli import main
+
+    out = tmp_path / "refused"
+    out.mkdir()
+    (out / "camera_info.yaml").write_text("stale: from an earlier run\n")  # an earlier run's camera must go too
+    assert main(["calibrate", str(recordings_dir / "frontal_webcam720"), "--out", str(out), "--quiet"]) == 3
+    assert _camera_files(out) == []
+    assert json.loads((out / "calibration.json").read_text())["verdict"]["trusted"] is False
+    assert main(["scale", str(out / "calibration.json"), "--to", "640x360", "--out", str(tmp_path / "s")]) == 2
+    assert not (tmp_path / "s").exists() or _camera_files(tmp_path / "s") == []
+
+
+def test_accept_partial_writes_untrusted_names_that_say_so_inside(recordings_dir: Path, tmp_path: Path) -> None:
+    from calibcoach.app.cli import main
+    from calibcoach.app.outputs.camera_reader import load_trust
+
+    out = tmp_path / "partial"
+    assert main(["calibrate", str(recordings_dir / "frontal_webcam720"), "--out", str(out), "--quiet", "--accept-partial"]) == 3
+    names = _camera_files(out)
+    assert names == ["calibration_untrusted.yaml", "camera_info_untrusted.yaml", "camera_matrix_untrusted.npy",
+                     "dist_coeffs_untrusted.npy"]
+    fs = cv2.FileStorage(str(out / "calibration_untrusted.yaml"), cv2.FILE_STORAGE_READ)
+    assert int(fs.getNode("trusted").real()) == 0 and fs.getNode("untrusted_because").size() >= 2
+    fs.release()
+    ros = (out / "camera_info_untrusted.yaml").read_text()
+    assert ros.startswith("# UNTRUSTED calibration") and "calibcoach_trusted: false" in ros
+    assert "Coverage is only" in (out / "UNTRUSTED.txt").read_text()
+    for path in (out / "calibration.json", out / "calibration_untrusted.yaml", out / "camera_info_untrusted.yaml", out):
+        assert load_trust(path)[0] is False, path
+    assert main(["scale", str(out / "calibration.json"), "--to", "640x360", "--out", str(tmp_path / "s"), "--accept-partial"]) == 0
+    assert _camera_files(tmp_path / "s") == ["calibration_untrusted.yaml", "camera_info_untrusted.yaml",
+                                             "camera_matrix_untrusted.npy", "dist_coeffs_untrusted.npy"]

@@ -49,7 +49,9 @@ def test_demo_capture_calibrates_and_is_trusted(recordings_dir: Path, tmp_path: 
     data = json.loads((out / "calibration.json").read_text())
     assert data["verdict"]["trusted"] is True and data["model"] == "pinhole"
     assert data["rms_px"] < 0.1
-    assert 30 <= data["frames_used"] <= 60
+    # one frame per hold of the board (13 holds in 24 s), the distinct frames passed over, then
+    # the same number of repeats of every pose from the rest of its hold
+    assert 13 <= data["frames_used"] <= 60
     for name in ("camera_matrix.npy", "dist_coeffs.npy", "calibration.yaml", "camera_info.yaml", "coverage.png",
                  "residuals.png", "per_frame_errors.png", "uncertainty.png", "undistorted_check.png"):
         assert (out / name).stat().st_size > 0, name
@@ -79,7 +81,8 @@ def test_fisheye_capture_solves_kannala_brandt(recordings_dir: Path, tmp_path: P
     code, stdout, out = calibrate(tmp_path, capsys, recording, "--accept-partial")
     data = json.loads((out / "calibration.json").read_text())
     assert data["model"] == "fisheye", data["model_choice"]
-    assert np.load(out / "dist_coeffs.npy").shape == (4, 1)
+    name = "dist_coeffs.npy" if data["verdict"]["trusted"] else "dist_coeffs_untrusted.npy"
+    assert np.load(out / name).shape == (4, 1)
     rms, covered_p95, _ = truth_error(recording, out / "calibration.json")
     assert rms < 0.1 and covered_p95 < 0.2, (rms, covered_p95)  # the bar is 1 px; the plain recipe crashes
 

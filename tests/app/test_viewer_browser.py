@@ -58,7 +58,8 @@ def screenshot(url: str, out: Path, *, wait_s: float, ready=None) -> np.ndarray:
     profile = out.parent / "chromium-profile"
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
              "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--window-size=1600,1000", "about:blank"]
+             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--remote-allow-origins=*",
+             "--window-size=1600,1000", "about:blank"]  # newer chromium refuses DevTools websockets from other origins
     browser = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         tabs = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -110,3 +112,18 @@ def test_plain_print_of_an_even_row_board_is_not_called_inverted_or_legacy() -> 
     detector = CharucoBoardDetector(spec)
     assert detector.detect(board_photo(spec)).corner_count == 54
     assert detector.variant_found == "standard pattern"
+
+
+@pytest.mark.parametrize(("fields", "says"), [
+    ({"squares_x": 8.5}, "whole number of squares"),
+    ({"squares_y": 1}, "at least 2x2"),
+    ({"square_mm": 1e300, "marker_mm": 7e299}, "between 1 mm and 2000 mm"),
+    ({"square_mm": float("nan")}, "between 1 mm and 2000 mm"),
+    ({"square_mm": 0.5, "marker_mm": 0.3}, "--square-mm"),
+    ({"marker_mm": 31.0}, "smaller than the square size"),
+    ({"squares_x": 10, "dictionary": "DICT_4X4_50"}, "pass a larger dictionary"),
+    ({"dictionary": "DICT_9X9_1"}, "unknown ArUco dictionary"),
+])
+def test_board_spec_refuses_what_no_print_can_be_with_the_fix(fields: dict, says: str) -> None:
+    with pytest.raises(BoardError, match=re.escape(says)):
+        BoardSpec(**fields)

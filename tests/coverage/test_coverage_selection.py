@@ -15,6 +15,7 @@ from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose
 from calibcoach.coverage.select import FrameSelector, SelectorSettings, board_motion_px, corner_spread
+from calibcoach.coverage.sharpness import EdgeBlur
 from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim_paths import place_board
@@ -147,10 +148,28 @@ def test_selector_gates_each_reason() -> None:
     assert sel.gate(full) is None
     pose = estimate_pose(full, CAMERA)
     moving, _ = sel.decide(0, full, pose, motion_px_s=80.0, blur_px=1.0)
-    assert moving.reason == "moving" and moving.quality == pytest.approx((25.0 / 80.0) ** 2)
+    assert moving.reason == "moving" and moving.quality == 0.0  # no smear measured: the speed decides
+    smeared, _ = sel.decide(0, full, pose, motion_px_s=5.0, blur_px=0.8, edges=EdgeBlur(0.8, 1.05))
+    assert smeared.reason == "moving" and "smeared 2.4 px" in smeared.detail and smeared.quality == 0.0
     assert sel.decide(0, full, pose, motion_px_s=5.0, blur_px=1.0)[0].accepted
     blurred, _ = sel.decide(0, full, pose, motion_px_s=None, blur_px=3.5)
     assert blurred.reason == "blurred" and blurred.quality == 0.0
+
+
+def test_a_jittering_but_unsmeared_board_is_still_once_the_cameras_sharpness_is_known() -> None:
+    sel = selector()
+    for k, x in enumerate((300, 640, 980)):
+        det = detection_at((x, 360), 0.9)
+        d, c = sel.decide(k, det, estimate_pose(det, CAMERA, CENTRE), motion_px_s=None, blur_px=0.8, edges=EdgeBlur(0.8, 0.82))
+        sel.commit(k, det, estimate_pose(det, CAMERA, CENTRE), c, blur_px=0.8)
+    assert sel.own_sharpness_px() == pytest.approx(0.8)
+    # 2 px of jitter per frame at 30 fps is 60 px/s: the frame itself shows no smear, so it is still
+    det = detection_at((200, 130), 1.0, tilt_y=30)
+    d, _ = sel.decide(9, det, estimate_pose(det, CAMERA, CENTRE), motion_px_s=60.0, blur_px=0.83, edges=EdgeBlur(0.83, 0.86))
+    assert d.accepted, d
+    # the same speed with both edge families widened beyond the camera's own: a smear along a diagonal
+    d, _ = sel.decide(10, det, estimate_pose(det, CAMERA, CENTRE), motion_px_s=60.0, blur_px=1.0, edges=EdgeBlur(1.0, 1.0))
+    assert d.reason == "moving" and "diagonal" in d.detail
 
 
 def test_selector_accepts_new_coverage_and_rejects_look_alikes() -> None:

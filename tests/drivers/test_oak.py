@@ -248,6 +248,15 @@ def test_calibration_round_trips_through_depthai(tmp_path, model):
     assert back.getDistortionModel(socket) == camera_type
     assert back.getLensPosition(socket) == 130
     assert (back.getSourceWidth(socket), back.getSourceHeight(socket)) == (1920, 1080)
+    assert "UNTRUSTED" not in back.getEepromData().productName
+
+
+def test_an_untrusted_calibration_says_so_inside_the_depthai_file(tmp_path):
+    camera = CameraModel("pinhole", np.array(_K), np.zeros(5), (1920, 1080))
+    path = write_depthai_calibration(tmp_path / "depthai_calibration_untrusted.json", camera, untrusted=True)
+    back = dai.CalibrationHandler(str(path))
+    assert back.getEepromData().productName.startswith("UNTRUSTED")
+    np.testing.assert_allclose(back.getCameraIntrinsics(dai.CameraBoardSocket.CAM_A), _K, rtol=1e-6)  # still loads
 
 
 def test_calibration_rejects_an_unknown_socket(tmp_path):

@@ -1,0 +1,77 @@
+"""What a calibration session takes and gives: settings, per-frame outcome, progress, the result.
+
+Split from `session.py`, which holds the behaviour; these are the frozen values that cross into
+the replay and live loops, the viewer, the outputs and the embedding API.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.grid import CoverageMap, CoverageRequirements
+from calibcoach.coverage.guidance import Guidance
+from calibcoach.coverage.pose import BoardPose
+from calibcoach.coverage.select import Decision, SelectorSettings
+from calibcoach.drivers.lens import CameraModel
+
+
+@dataclass(frozen=True, slots=True)
+class SessionSettings:
+    model: str = "auto"  # "auto" | "pinhole" | "rational" | "fisheye"
+    selector: SelectorSettings = field(default_factory=SelectorSettings)
+    hfov_guess_deg: float = 70.0  # bootstrap intrinsics for pose estimates before the first solve
+    stop_when_done: bool = True
+    error_target_px: float | None = None  # stop rule's E target; None = derived from the corner noise (verdict.py)
+    coverage: CoverageRequirements = field(default_factory=CoverageRequirements)
+    use_motion_gate: bool = True  # off for folders of independent photos
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    frames_seen: int
+    frames_accepted: int
+    coverage: float  # 0..1, of what this lens can show
+    expected_error_px: float | None  # E over the covered region; None before the first incremental solve
+    target_px: float | None  # the stop rule's E target; None until the corner noise is measured
+    uncertainty_p95_px: float | None  # secondary: p95 of the worst-direction sigma over the covered region
+    best_next_cut: float | None  # relative cut of E the current target would bring
+    rejections: dict[str, int]
+    done: bool
+    stop_reason: str = ""  # why the stop rule fired, once it has
+
+
+@dataclass(frozen=True, slots=True)
+class FrameOutcome:
+    frame_index: int
+    frame_name: str
+    detection: Detection
+    pose: BoardPose | None
+    decision: Decision
+    blur_px: float | None
+    motion_px_s: float | None
+    guidance: Guidance
+    progress: Progress
+    camera: CameraModel  # the intrinsics the pose was estimated with (the bootstrap guess before any solve)
+    coverage: CoverageMap  # the session's live map (shared, not a copy: read it before the next frame)
+    board_centre_px: np.ndarray | None = None  # (2,) float64 where the board's centre is in this frame (from the pose)
+
+
+@dataclass(frozen=True, slots=True)
+class SessionResult:
+    calibration: Calibration
+    model_choice: ModelChoice
+    uncertainty: UncertaintyMap
+    verdict: Verdict
+    coverage: CoverageMap  # rebuilt from the final solve's poses
+    board: BoardSpec  # with the print's legacy/inverted settled
+    rejections: dict[str, int]
+    frames_seen: int
+    check_image: np.ndarray | None  # one accepted frame, for the undistortion check picture
+    noise_px: float  # corner noise per coordinate the final solve measured (dof-corrected RMS)
+    target_px: float  # the E target the verdict judged against
+    stop_reason: str  # why the capture ended ("" when the source simply ran out)
