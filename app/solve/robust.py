@@ -3,7 +3,9 @@
 A corner is an outlier when its residual is far outside the residual distribution of the whole
 solve (chi-square test with 2 degrees of freedom on a robust sigma). A frame is an outlier when its
 RMS stands far above the median frame's (defocus, motion blur or a misdetection affects whole
-frames). Each round removes what it finds and re-solves, until nothing more is dropped.
+frames). Each round removes what it finds and re-solves, until nothing more is dropped. Views
+that stay but are noisier than the typical one then count by their inverse corner variance in a
+weighted refinement (`weighted.py`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 from calibcoach.app.solve.calibrate import reprojection_residuals, solve
 from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
 from calibcoach.app.solve.uncertainty import intrinsic_covariance, intrinsic_names
+from calibcoach.app.solve.weighted import view_weights, weighted_refine
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
@@ -83,7 +86,13 @@ def robust_calibrate(
             )
         kept = next_views
         raw = solve(kept, image_size, model, initial=raw.camera)
-    return build_calibration(raw.camera, kept, raw.rvecs, raw.tvecs, dropped_frames, dropped_corners)
+    camera, rvecs, tvecs = raw.camera, raw.rvecs, raw.tvecs
+    weights = view_weights(reprojection_residuals(camera, kept, rvecs, tvecs))
+    if np.any(weights < 0.999) and len(kept) >= 3:
+        # views noisier than the typical one count by their inverse corner variance (weighted.py)
+        camera, rvecs, tvecs = weighted_refine(camera, kept, rvecs, tvecs, weights)
+        kept = [replace(v, information_weight=v.information_weight * float(w)) for v, w in zip(kept, weights, strict=True)]
+    return build_calibration(camera, kept, rvecs, tvecs, dropped_frames, dropped_corners)
 
 
 def look_alike_correlation(views: Sequence[View], residuals: Sequence[np.ndarray], groups: Sequence[int]) -> float:
@@ -133,11 +142,11 @@ def with_look_alikes_weighted(calibration: Calibration, groups: Sequence[int]) -
     if len(set(groups)) == len(groups):
         return calibration, 0.0
     rho = look_alike_correlation(calibration.views, calibration.residuals_px, groups)
-    views = tuple(replace(v, information_weight=w) for v, w in zip(calibration.views, look_alike_weights(groups, rho), strict=True))
-    noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
-                           n_params=len(calibration.intrinsic_names), n_views=len(views))
-    covariance = intrinsic_covariance(calibration.camera, views, calibration.rvecs, calibration.tvecs, sigma_px=noise)
-    return replace(calibration, views=views, intrinsic_covariance=covariance), rho
+    views = tuple(replace(v, information_weight=v.information_weight * w)
+                  for v, w in zip(calibration.views, look_alike_weights(groups, rho), strict=True))
+    rebuilt = build_calibration(calibration.camera, views, calibration.rvecs, calibration.tvecs,
+                                calibration.dropped_frames, calibration.dropped_corners)
+    return rebuilt, rho
 
 
 def noise_sigma_px(rms_px: float, *, n_points: int, n_params: int, n_views: int) -> float:
@@ -164,7 +173,11 @@ def build_calibration(
     all_res = np.concatenate(residuals)
     rms = float(np.sqrt(np.mean(np.sum(all_res**2, axis=1))))
     view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in residuals])
-    sigma = noise_sigma_px(rms, n_points=all_res.shape[0], n_params=len(intrinsic_names(camera.model)), n_views=len(views))
+    # the noise of a view of weight 1: each view's variance is sigma^2 / its weight (weighted.py)
+    w = np.array([v.information_weight for v in views])
+    rms_typical = float(np.sqrt(np.sum(w * np.array([np.sum(r**2) for r in residuals]))
+                                / max(float(np.sum(w * np.array([r.shape[0] for r in residuals]))), 1e-12)))
+    sigma = noise_sigma_px(rms_typical, n_points=all_res.shape[0], n_params=len(intrinsic_names(camera.model)), n_views=len(views))
     covariance = intrinsic_covariance(camera, views, rvecs, tvecs, sigma_px=sigma)
     return Calibration(
         camera=camera,

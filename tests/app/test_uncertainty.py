@@ -348,3 +348,26 @@ def test_expected_error_and_its_map_match_monte_carlo(model):
     assert 0.8 < observed_E / umap.expected_error_px < 1.2, (observed_E, umap.expected_error_px)
     ratio = observed_map[umap.covered] / umap.error_px[umap.covered]
     assert 0.8 < np.median(ratio) < 1.2 and np.percentile(ratio, 10) > 0.7 and np.percentile(ratio, 90) < 1.3, np.percentile(ratio, [10, 50, 90])
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_weighted_refinement_discounts_noisy_views(model):
+    """4 of 18 views at 6x the corner noise: weighting them by inverse variance halves the error."""
+    from calibcoach.app.solve.calibrate import reprojection_residuals, solve
+    from calibcoach.app.solve.compare import projection_difference
+    from calibcoach.app.solve.weighted import view_weights, weighted_refine
+
+    cam = LENSES[model]
+    rng = np.random.default_rng(1)
+    plain, weighted = [], []
+    for _ in range(4):
+        poses = random_poses(cam, 18, rng, distance_m=(0.35, 0.6) if model == "fisheye" else (0.6, 1.0))
+        views = [View(v.frame_index, "", v.ids, v.image_points_px + rng.normal(0, 0.6 if v.frame_index < 4 else 0.1, (70, 2)),
+                      v.object_points_m) for v in observe(cam, poses)]
+        raw = solve(views, SIZE, model)
+        w = view_weights(reprojection_residuals(raw.camera, views, raw.rvecs, raw.tvecs))
+        assert np.all(w[:4] < 0.2) and np.all(w[4:] > 0.5)  # the noisy views are the ones discounted
+        refined, _, _ = weighted_refine(raw.camera, views, raw.rvecs, raw.tvecs, w)
+        plain.append(projection_difference(cam, raw.camera).rms_px)
+        weighted.append(projection_difference(cam, refined).rms_px)
+    assert np.median(weighted) < 0.7 * np.median(plain), (plain, weighted)

@@ -1,0 +1,106 @@
+"""A weighted refinement of a solved calibration: each view counts by the inverse of its corner variance.
+
+OpenCV's solvers weight every corner alike. Corners are not alike: a steep view at the image edge,
+a softer frame or a pose whose print or light is poor has corner errors several times those of a
+frontal sharp view (on the closed-loop simulator one hold's corners were 0.13 px off where the
+median view's were 0.04), and at equal weight those errors pull the intrinsics. Starting from
+OpenCV's solution, this runs Levenberg-Marquardt on intrinsics and poses together, every view's
+rows scaled by sqrt(w_v), w_v = (sigma_typical / sigma_v)^2 from its own residuals (never above 1:
+a view is trusted at most as much as a typical one, so no single view can take over). The normal
+equations are reduced to the intrinsics by the same Schur complement the uncertainty uses, one
+6 x 6 pose block per view, so it stays cheap for 60 views.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from calibcoach.app.solve.result import View
+from calibcoach.app.solve.uncertainty import intrinsic_names, view_jacobian
+from calibcoach.drivers.lens import CameraModel
+
+MIN_WEIGHT = 0.1  # a view at 3x the typical corner noise or worse counts a tenth
+
+
+def view_weights(residuals: Sequence[np.ndarray]) -> np.ndarray:
+    """(V,) inverse-variance weights from each view's residuals, relative to the median view, capped at 1."""
+    sigma = np.array([float(np.sqrt(np.mean(r**2))) if r.size else np.inf for r in residuals])
+    typical = float(np.median(sigma[np.isfinite(sigma)])) if np.isfinite(sigma).any() else 1.0
+    return np.clip((typical / np.maximum(sigma, 1e-12)) ** 2, MIN_WEIGHT, 1.0)
+
+
+def camera_from_vector(camera: CameraModel, p: np.ndarray) -> CameraModel:
+    """The camera with its free intrinsics (`intrinsic_names` order) replaced by `p` (P,)."""
+    K = camera.camera_matrix.copy()
+    K[0, 0], K[1, 1], K[0, 2], K[1, 2] = p[:4]
+    return CameraModel(camera.model, K, np.asarray(p[4:], np.float64), camera.image_size)
+
+
+def vector_of(camera: CameraModel) -> np.ndarray:
+    K = camera.camera_matrix
+    return np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera.dist_coeffs[: len(intrinsic_names(camera.model)) - 4]])
+
+
+def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray,
+                    weights: np.ndarray, *, iterations: int = 15) -> tuple[CameraModel, np.ndarray, np.ndarray]:
+    """Minimise sum_v w_v |r_v|^2 over intrinsics and poses from a solved start (LM, Schur-reduced).
+
+    Args:
+        camera: the start (OpenCV's solution).
+        views: V views; rvecs, tvecs: (V, 3) their poses.
+        weights: (V,) per-view weights (`view_weights`).
+
+    Returns:
+        (camera, rvecs (V, 3), tvecs (V, 3)); the start itself when no step lowers the cost.
+    """
+    p = vector_of(camera)
+    rv, tv = np.array(rvecs, np.float64).reshape(-1, 3), np.array(tvecs, np.float64).reshape(-1, 3)
+    w = np.asarray(weights, np.float64)
+
+    def cost(cam: CameraModel, r: np.ndarray, t: np.ndarray) -> float:
+        total = 0.0
+        for v, wi, ri, ti in zip(views, w, r, t, strict=True):
+            res = v.image_points_px - cam.project(v.object_points_m, ri, ti)
+            total += wi * float(np.sum(res**2))
+        return total
+
+    lam = 1e-3
+    current = cost(camera, rv, tv)
+    for _ in range(iterations):
+        cam = camera_from_vector(camera, p)
+        P = p.size
+        S, g = np.zeros((P, P)), np.zeros(P)
+        blocks = []
+        for v, wi, ri, ti in zip(views, w, rv, tv, strict=True):
+            J_i, J_p = view_jacobian(cam, v.object_points_m, ri, ti)
+            r = (v.image_points_px - cam.project(v.object_points_m, ri, ti)).reshape(-1)
+            U, W, V = wi * J_i.T @ J_i, wi * J_i.T @ J_p, wi * J_p.T @ J_p
+            e_i, e_p = wi * J_i.T @ r, wi * J_p.T @ r
+            V = V + lam * np.diag(np.diag(V) + 1e-12)
+            V_inv = np.linalg.inv(V)
+            S += U - W @ V_inv @ W.T
+            g += e_i - W @ V_inv @ e_p
+            blocks.append((W, V_inv, e_p))
+        S = S + lam * np.diag(np.diag(S) + 1e-12)
+        try:
+            dp = np.linalg.solve(S, g)
+        except np.linalg.LinAlgError:
+            break
+        d_pose = np.array([V_inv @ (e_p - W.T @ dp) for W, V_inv, e_p in blocks])
+        p_new, rv_new, tv_new = p + dp, rv + d_pose[:, :3], tv + d_pose[:, 3:]
+        cam_new = camera_from_vector(camera, p_new)
+        new = cost(cam_new, rv_new, tv_new) if np.all(np.isfinite(p_new)) else np.inf
+        if new < current:
+            p, rv, tv = p_new, rv_new, tv_new
+            lam = max(lam / 10, 1e-9)
+            done = (current - new) < 1e-10 * max(current, 1e-12)
+            current = new
+            if done:
+                break
+        else:
+            lam *= 10
+            if lam > 1e6:
+                break
+    return camera_from_vector(camera, p), rv, tv
