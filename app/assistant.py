@@ -18,10 +18,12 @@ last. `calibcoach calibrate` and `calibcoach live` run on the same `Assistant` s
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from calibcoach.app.focus_watch import RELOCK_EVENT, FocusEvent, FocusWatch
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionResult, SessionSettings
 from calibcoach.app.solve.result import Verdict
 from calibcoach.coverage.board import BoardSpec
@@ -91,10 +93,14 @@ class Assistant:
         image_size: (width, height) of the frames that will be fed.
         model: "auto", "pinhole", "rational" or "fisheye" (default: the settings', "auto").
         settings: the full session settings, for what the arguments above do not cover.
+        locked_controls: the focus controls read back after locking focus (a driver's per-frame
+            reports are compared with them; see app/focus_watch.py). Empty: only softness is watched.
+        focus_events: drift events a recording stored (replay applies them as the live session did).
     """
 
     def __init__(self, board: BoardSpec | None = None, image_size: tuple[int, int] = (1280, 720), model: str | None = None,
-                 *, settings: SessionSettings | None = None) -> None:
+                 *, settings: SessionSettings | None = None, locked_controls: Mapping[str, float] | None = None,
+                 focus_events: Sequence[FocusEvent] = ()) -> None:
         self.board = board or BoardSpec()
         base = settings or SessionSettings()
         if model is not None and model != base.model:
@@ -104,6 +110,29 @@ class Assistant:
         self._held: tuple[Frame, Detection] | None = None
         self._count = 0
         self.last_outcome: FrameOutcome | None = None
+        self.watch = FocusWatch(locked_controls)
+        self._locked = dict(locked_controls or {})
+        self._recorded_events = list(focus_events)  # in the order they happened
+
+    @property
+    def focus_drift(self) -> FocusEvent | None:
+        """The drift that stopped acceptance (noticed here or stored in the recording), if any."""
+        return self.watch.event
+
+    def resume_accepting(self, *, from_index: int) -> FocusEvent | None:
+        """A resumed capture at the recorded lock: accept frames from `from_index` on again.
+
+        Frames ruled out by an earlier drift stay out of the final solve. Returns the relock event
+        to store in the recording (None when nothing had drifted)."""
+        if self.session.accepting:
+            return None
+        event = FocusEvent(from_index, from_index, "capture resumed at the recorded focus lock", RELOCK_EVENT)
+        self._relock(event)
+        return event
+
+    def _relock(self, event: FocusEvent) -> None:
+        self.watch = FocusWatch(self._locked, from_index=event.frame_index)
+        self.session.accept_again(from_index=event.frame_index)
 
     # --- per frame --------------------------------------------------------------------------------
     def feed(self, image: np.ndarray, timestamp_ns: int) -> Step:
@@ -128,10 +157,23 @@ class Assistant:
 
     def _decide(self, item: tuple[Frame, Detection], *, following: tuple[Detection, int] | None) -> Step:
         frame, detection = item
+        while self._recorded_events and self._recorded_events[0].due(frame.index):  # as the live session did
+            event = self._recorded_events.pop(0)
+            if event.kind == RELOCK_EVENT:
+                self._relock(event)
+            elif self.watch.event is None:
+                self._stop_accepting(event)
         outcome = self.session.process(frame, detection, following=following)
+        event = self.watch.check(frame, outcome.blur_px, self.session.selector.accepted_blurs)
+        if event is not None:
+            self._stop_accepting(event)
         self.last_outcome = outcome
         d = outcome.decision
         return Step(outcome.frame_index, d.accepted, d.reason, d.detail, outcome.guidance, self._progress(), outcome, frame)
+
+    def _stop_accepting(self, event: FocusEvent) -> None:
+        self.watch.event = event
+        self.session.stop_accepting(event.first_bad_index, event.detail)
 
     def flush(self) -> Step | None:
         """Decide the frame still held for lookahead (the source ended); None when there is none."""

@@ -17,9 +17,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from calibcoach.app.assistant import Assistant, Step
+from calibcoach.app.focus_watch import FocusEvent, focus_events, lock_mismatch
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -27,9 +27,6 @@ from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
 from calibcoach.drivers.errors import CalibcoachError, SourceError
 from calibcoach.drivers.recording import RecordingWriter
 from calibcoach.drivers.replay import RecordingSource
-
-FOCUS_CONTROL_KEYS = ("focus_absolute", "lens_position", "focus_position")  # what a driver reports per frame
-
 
 _DETECT_THREADS = 2  # the live loop's detection: the cores a laptop has to spare
 
@@ -169,36 +166,6 @@ class LiveStats:
         return self.frames_processed / self.seconds if self.seconds > 0 else 0.0
 
 
-class FocusWatch:
-    """Stops acceptance when the lens moves: a focus control reads back different, or frames go soft.
-
-    `locked` holds the control values read back after locking; every frame's own control report is
-    compared with it. The sharpness check compares the edge blur of frames with a board against the
-    median of the frames accepted so far: a run of frames 1.8x blurrier means focus drifted (or the
-    lens breathes) even on cameras that report nothing.
-    """
-
-    def __init__(self, locked: dict[str, float]) -> None:
-        self.locked = {k: float(v) for k, v in locked.items() if k in FOCUS_CONTROL_KEYS}
-        self.problem: str | None = None
-        self._soft_run = 0
-
-    def check(self, frame: Frame, outcome: FrameOutcome, accepted_blurs: list[float]) -> str | None:
-        for key, value in self.locked.items():
-            now = frame.controls.get(key)
-            if now is not None and abs(float(now) - value) > 0.5:
-                self.problem = f"{key} moved from {value:g} to {float(now):g} at frame {frame.index}"
-                return self.problem
-        if outcome.blur_px is not None and np.isfinite(outcome.blur_px) and len(accepted_blurs) >= 5:
-            soft = outcome.blur_px > 1.8 * float(np.median(accepted_blurs))
-            self._soft_run = self._soft_run + 1 if soft else 0
-            if self._soft_run >= 15:
-                self.problem = (f"the last 15 frames with a board are {outcome.blur_px / np.median(accepted_blurs):.1f}x "
-                                f"blurrier than the accepted ones (frame {frame.index}): focus drifted")
-                return self.problem
-        return None
-
-
 def run_live(
     source: FrameSource,
     board: BoardSpec,
@@ -219,7 +186,14 @@ def run_live(
     detector = CharucoBoardDetector(board)
     assistant: Assistant | None = None
     writer: RecordingWriter | None = None
-    watch = FocusWatch(locked_controls or {})
+    locked = dict(locked_controls or {})
+    recorded = RecordingSource(resume) if resume is not None else None
+    if recorded is not None:  # a resumed capture must go on at the focus its frames were taken at
+        moved = lock_mismatch(recorded.info.locked_controls, locked)
+        if moved:
+            raise CalibcoachError(f"focus is locked elsewhere than when {resume} was recorded ({moved}); set the lens "
+                                  "back (--lens-position) or record a new session instead of resuming this one")
+    noted: list[FocusEvent] = []  # events already in the recording
     start = time.perf_counter()
     processed = resumed = 0
     stopped = interrupted = False
@@ -227,8 +201,9 @@ def run_live(
 
     def stats() -> LiveStats:
         dropped = 0 if grabber is None else grabber.dropped
+        drift = None if assistant is None or assistant.focus_drift is None else assistant.focus_drift.detail
         return LiveStats(processed, dropped, time.perf_counter() - start, stopped, interrupted, resumed,
-                         watch.problem, detector.spec)
+                         drift, detector.spec)
 
     def handle(step: Step | None) -> bool:
         """One decided frame: the focus watch, the caller's callback; True when the stop rule is met."""
@@ -237,8 +212,11 @@ def run_live(
             return False
         assert assistant is not None
         processed += 1
-        if watch.problem is None and watch.check(step.frame, step.outcome, assistant.session.selector.accepted_blurs):
-            assistant.session.accepting = False
+        event = assistant.focus_drift
+        if event is not None and event not in noted:  # into the recording at once: replay applies it
+            noted.append(event)
+            if writer is not None:
+                writer.note_event(event.to_dict())
         if on_outcome is not None:
             on_outcome(step.outcome, step.frame, stats())
         return step.progress.done
@@ -246,13 +224,13 @@ def run_live(
     def feed(frame: Frame, detection: Detection) -> bool:
         nonlocal assistant
         if assistant is None:
-            assistant = Assistant(detector.spec, frame.image_size, settings=settings)
-        if watch.problem is not None:
-            assistant.session.accepting = False
+            assistant = Assistant(detector.spec, frame.image_size, settings=settings, locked_controls=locked,
+                                  focus_events=() if recorded is None else focus_events(recorded.info.events))
         return handle(assistant.feed_detected(frame, detection))  # decides the frame before this one
 
-    if resume is not None:  # replay what was recorded, exactly as `calibrate` would, then go on live
-        for frame in RecordingSource(resume).frames():
+    if recorded is not None:  # replay what was recorded, exactly as `calibrate` would, then go on live
+        noted.extend(focus_events(recorded.info.events))  # already in the recording
+        for frame in recorded.frames():
             detection = detect_on_all_cores(detector, frame)
             resumed += 1
             if feed(frame, detection):
@@ -262,6 +240,7 @@ def run_live(
         source = _NoFrames(info)
     grabber = FrameGrabber(source, on_capture).start()
     target = resume if resume is not None else record
+    first_live = False
     try:
         while True:
             frame = grabber.next()
@@ -272,8 +251,15 @@ def run_live(
                     writer = RecordingWriter(
                         target, camera_id=info.camera_id or info.description, kind=info.kind, image_size=frame.image_size,
                         fps=info.fps, controls=dict(info.controls), board=detector.spec.to_dict(), append=resume is not None,
+                        locked_controls=locked,
                     )
+                    first_live = True
                 frame = replace(frame, index=writer.write(frame))  # recorded before processed: crash-safe
+                if first_live and assistant is not None:  # resumed at a matching lock: accept again from here
+                    relocked = assistant.resume_accepting(from_index=frame.index)
+                    if relocked is not None:
+                        writer.note_event(relocked.to_dict())
+                first_live = False
             if feed(frame, detect_on_all_cores(detector, frame)):
                 stopped = True
                 break

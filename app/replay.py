@@ -11,11 +11,12 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 from calibcoach.app.assistant import Assistant
+from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
@@ -146,7 +147,8 @@ def run_replay(
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
     settle = CharucoBoardDetector(board)
-    feed = _Feeder(settle, settings, on_outcome)
+    feed = _Feeder(settle, settings, on_outcome, locked_controls=info.locked_controls,
+                   focus_events=focus_events(info.events))
     start = time.perf_counter()
     scans: list[SparseScan] = []
     stream = detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
@@ -168,8 +170,10 @@ class _Feeder:
     """Feeds (frame, detection) streams to one `Assistant` (which looks one frame ahead, like live)."""
 
     def __init__(self, settle: CharucoBoardDetector, settings: SessionSettings,
-                 on_outcome: Callable[[FrameOutcome, Frame], None] | None) -> None:
+                 on_outcome: Callable[[FrameOutcome, Frame], None] | None, *,
+                 locked_controls: Mapping[str, float], focus_events: Sequence[FocusEvent]) -> None:
         self.settle, self.settings, self.on_outcome = settle, settings, on_outcome
+        self.locked_controls, self.focus_events = locked_controls, focus_events
         self.assistant: Assistant | None = None
         self.read = 0
         self.stopped = self.interrupted = False
@@ -188,7 +192,8 @@ class _Feeder:
                     self.read += 1
                     frame, detection = item
                     if self.assistant is None:
-                        self.assistant = Assistant(self.settle.spec, frame.image_size, settings=self.settings)
+                        self.assistant = Assistant(self.settle.spec, frame.image_size, settings=self.settings,
+                                                   locked_controls=self.locked_controls, focus_events=self.focus_events)
                     step = self.assistant.feed_detected(frame, detection)
                 if step is not None and step.outcome is not None and step.frame is not None:
                     if self.on_outcome is not None:

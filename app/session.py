@@ -12,6 +12,7 @@ chooses the model, maps the uncertainty and judges the result. Detection is done
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -124,7 +125,10 @@ class CalibrationSession:
         self._recent: list[str] = []  # decisions of the last frames that showed a usable board
         self.look_alike_correlation = 0.0  # residual correlation of look-alike frames in the final solve
         self._done = False
-        self.accepting = True  # a live session turns this off when the focus drifts
+        self.accepting = True  # off once the focus drifted (app/focus_watch.py), until a matching lock resumes
+        self.focus_drift: str | None = None  # what moved, in words
+        # [start, end) frame indices taken at a drifted focus: left out of the final solve (end None: to the end)
+        self.drifted_ranges: list[tuple[int, int | None]] = []
         self._refresh_lens()
         self._rank()
 
@@ -171,7 +175,7 @@ class CalibrationSession:
         self._previous = (detection, frame.timestamp_ns)
         pose = self._pose(detection) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
-        if gated is None and not self.accepting:
+        if gated is None and (not self.accepting or self._drifted(frame.index)):
             gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
         if gated is None and self._done:
             gated = Decision(False, "frame limit", f"capture complete ({self.stop_reason})", quality=0.0)
@@ -343,6 +347,20 @@ class CalibrationSession:
     def _stop(self, reason: str) -> None:
         self._done, self.stop_reason = True, reason
 
+    def stop_accepting(self, first_bad_index: int, detail: str) -> None:
+        """The focus moved: accept nothing more, and leave frames from `first_bad_index` on out of the solve."""
+        self.accepting, self.focus_drift = False, detail
+        self.drifted_ranges.append((int(first_bad_index), None))
+
+    def accept_again(self, *, from_index: int) -> None:
+        """Focus is back at the locked value (a resumed capture): accept frames from `from_index` on."""
+        if self.drifted_ranges and self.drifted_ranges[-1][1] is None:
+            self.drifted_ranges[-1] = (self.drifted_ranges[-1][0], int(from_index))
+        self.accepting = True
+
+    def _drifted(self, frame_index: int) -> bool:
+        return any(start <= frame_index and (end is None or frame_index < end) for start, end in self.drifted_ranges)
+
     def progress(self) -> Progress:
         best = self.guide.best
         return Progress(
@@ -390,6 +408,9 @@ class CalibrationSession:
     # --- the end --------------------------------------------------------------------------------
     def finish(self) -> SessionResult:
         """Final robust solve, model choice, uncertainty map and verdict."""
+        if self.drifted_ranges:  # taken at another focus: another camera
+            self.views = [v for v in self.views if not self._drifted(v.frame_index)]
+            self._reserve = [(v, q) for v, q in self._reserve if not self._drifted(v.frame_index)]
         if len(self.views) < 3 and len(self.views) + len(self._reserve) >= 3:
             # Too few distinct frames (a frontal-only capture, say): solve with the look-alikes anyway,
             # so the verdict can say what is wrong with the data instead of refusing to look.
@@ -425,6 +446,9 @@ class CalibrationSession:
             noise_px=noise,
             target_px=self.settings.error_target_px,
         )
+        if self.focus_drift is not None:
+            verdict = replace(verdict, reasons=(*verdict.reasons, f"Focus drifted ({self.focus_drift}): frames taken after "
+                              "it were left out; lock focus at the recorded value and continue with --resume to add more."))
         return SessionResult(
             calibration=calibration,
             model_choice=choice,

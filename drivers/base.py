@@ -52,6 +52,8 @@ class SourceInfo:
     frame_count: int | None = None  # total frames when known (files), None for live cameras
     controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
     board: Mapping[str, Any] | None = None  # board description stored with a recording, if any
+    locked_controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))  # a recording's focus lock
+    events: tuple[Mapping[str, Any], ...] = ()  # events a recording stored (focus drift), in order
 
 
 @dataclass(frozen=True, slots=True)

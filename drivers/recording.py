@@ -113,6 +113,7 @@ class RecordingWriter:
         controls: Mapping[str, float],
         board: Mapping[str, Any] | None,
         append: bool = False,
+        locked_controls: Mapping[str, float] | None = None,
     ) -> None:
         self.folder = Path(folder)
         self.image_size = (int(image_size[0]), int(image_size[1]))  # (width, height) pixels
@@ -140,6 +141,9 @@ class RecordingWriter:
                            "fps": None if fps is None else float(fps)},
                 "controls": _plain_controls(controls),
                 "board": board_dict,
+                # what focus was locked at (read back): a replay watches the frames' reports against it
+                "locked_controls": _plain_controls(locked_controls or {}),
+                "events": [],  # e.g. {"kind": "focus_drift", "frame_index": ...}, written when they happen
             }
         (self.folder / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
         _write_json_atomic(self.folder / SESSION_FILE, self._header)
@@ -155,12 +159,12 @@ class RecordingWriter:
                 f"{self.folder} was recorded at {recorded_size[0]}x{recorded_size[1]} but the camera now delivers "
                 f"{self.image_size[0]}x{self.image_size[1]}; pass another folder instead of resuming this one"
             )
-        if board is not None and header.get("board") not in (None, board):
+        if board is not None and not _same_board(header.get("board"), board):
             raise SourceError(
                 f"{self.folder} was recorded with board {header['board']} but this session uses {board}; "
                 "pass another folder instead of resuming this one"
             )
-        header["board"] = header.get("board") or board
+        header["board"] = _settled_board(header.get("board"), board)
         header["complete"] = False
         self._entries = [dict(entry) for entry in contents.entries]
         if self._entries:
@@ -203,6 +207,14 @@ class RecordingWriter:
         self._last_index = index
         return index
 
+    def note_event(self, event: Mapping[str, Any]) -> None:
+        """Store an event of the live session (a focus drift, say) in session.json, at once and atomically.
+
+        The header is rewritten now rather than at close, so a crash right after a drift still leaves it
+        in the recording for the replay to apply."""
+        self._header = {**self._header, "events": [*self._header.get("events", []), dict(event)]}
+        _write_json_atomic(self.folder / SESSION_FILE, self._header)
+
     def close(self) -> None:
         """Write the full frame list into session.json and mark the recording complete."""
         if self._closed:
@@ -218,6 +230,21 @@ class RecordingWriter:
         # Closing on an exception too is deliberate: Ctrl-C is how a capture normally ends, and every
         # listed frame is already a whole file, so the frame list is accurate either way.
         self.close()
+
+
+def _same_board(recorded: Mapping[str, Any] | None, now: Mapping[str, Any]) -> bool:
+    """Whether two board descriptions agree; None (not yet settled, e.g. legacy or inverted print) agrees with any value."""
+    if recorded is None:
+        return True
+    return all(recorded.get(k) is None or now.get(k) is None or recorded.get(k) == now.get(k)
+               for k in recorded.keys() | now.keys())
+
+
+def _settled_board(recorded: Mapping[str, Any] | None, now: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The recorded board with what has been settled since filled in."""
+    if recorded is None or now is None:
+        return None if recorded is None and now is None else dict(recorded or now or {})
+    return {k: recorded.get(k) if recorded.get(k) is not None else now.get(k) for k in recorded.keys() | now.keys()}
 
 
 @dataclass(frozen=True, slots=True)

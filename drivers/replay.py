@@ -263,6 +263,10 @@ class RecordingSource(FrameSource):
         self._fps = float(fps) if isinstance(fps, int | float) and fps > 0 else None
         self._camera_id = str(camera.get("id", ""))
         self._controls = MappingProxyType(dict(header.get("controls") or {}))
+        locked = header.get("locked_controls")
+        self._locked = MappingProxyType(dict(locked) if isinstance(locked, dict) else {})
+        events = header.get("events")
+        self._events = tuple(MappingProxyType(dict(e)) for e in events if isinstance(e, dict)) if isinstance(events, list) else ()
         board = header.get("board")
         self._board = MappingProxyType(dict(board)) if isinstance(board, dict) else None
 
@@ -274,7 +278,8 @@ class RecordingSource(FrameSource):
         return SourceInfo(
             description=f"recording {self.path.name} ({self._camera_id}, {width}x{height}, {count} frames{state})",
             kind="recording", camera_id=self._camera_id, image_size=self._image_size, fps=self._fps,
-            frame_count=count, controls=self._controls, board=self._board,
+            frame_count=count, controls=self._controls, board=self._board, locked_controls=self._locked,
+            events=self._events,
         )
 
     def frames(self) -> Iterator[Frame]:
