@@ -38,6 +38,13 @@ def points_over_image(cam: CameraModel, n: int = 25, max_deg: float = 89.0) -> n
     return rays / rays[:, 2:3] * np.linspace(0.5, 3.0, rays.shape[0])[:, None]
 
 
+def script_constants(script: Path) -> dict:
+    """The UPPER_CASE literal assignments at the top level of a generated script, parsed, never run."""
+    tree = ast.parse(script.read_text())
+    return {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
+            for t in node.targets if isinstance(t, ast.Name) and t.id.isupper() and t.id != "CAMERA_OBJECT"}
+
+
 # --- Isaac Sim ----------------------------------------------------------------------------------------
 
 
@@ -79,8 +86,7 @@ def test_isaac_script_applies_the_same_attributes(tmp_path: Path) -> None:
     cam = camera("rational")
     usda, script = write_isaac(tmp_path, cam)
     tree = ast.parse(script.read_text())  # valid Python (pxr is not here: read it, do not run it)
-    values = {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
-              for t in node.targets if isinstance(t, ast.Name) and t.id.isupper()}
+    values = script_constants(script)
     assert values["SCHEMA"] == "OmniLensDistortionOpenCvPinholeAPI" and values["MODEL_TOKEN"] == "opencvPinhole"
     assert values["IMAGE_SIZE"] == SIZE and values["TRUSTED"] is True
     lens = values["LENS_ATTRIBUTES"]
@@ -185,9 +191,7 @@ def blender_K(values: dict) -> np.ndarray:
 def test_blender_script_recomputes_to_the_ideal_camera(tmp_path: Path, model: str) -> None:
     cam = camera(model)
     script, map_x, map_y = write_blender(tmp_path, cam)
-    tree = ast.parse(script.read_text())
-    values = {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
-              for t in node.targets if isinstance(t, ast.Name) and t.id.isupper() and t.id != "CAMERA_OBJECT"}
+    values = script_constants(script)
     np.testing.assert_allclose(blender_K(values), ideal_camera(cam).camera_matrix, atol=1e-9)
     assert values["PIXEL_ASPECT_X"] >= 1 and values["PIXEL_ASPECT_Y"] >= 1  # Blender's range
     assert "camera.shift_x = SHIFT_X" in script.read_text() and (map_x.name, map_y.name) == (
@@ -197,8 +201,6 @@ def test_blender_script_recomputes_to_the_ideal_camera(tmp_path: Path, model: st
 def test_blender_portrait_and_fy_above_fx(tmp_path: Path) -> None:
     cam = CameraModel("pinhole", np.array([[700.0, 0, 355.0], [0, 720.0, 650.0], [0, 0, 1]]), np.zeros(5), (720, 1280))
     (script, *_) = write_blender(tmp_path, cam)
-    tree = ast.parse(script.read_text())
-    values = {t.id: ast.literal_eval(node.value) for node in tree.body if isinstance(node, ast.Assign)
-              for t in node.targets if isinstance(t, ast.Name) and t.id.isupper() and t.id != "CAMERA_OBJECT"}
+    values = script_constants(script)
     np.testing.assert_allclose(blender_K(values), ideal_camera(cam).camera_matrix, atol=1e-9)
     assert values["PIXEL_ASPECT_X"] > 1
