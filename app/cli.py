@@ -142,6 +142,14 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--quiet", action="store_true", help="no status line")
     add_board_arguments(lv)
 
+    ex = sub.add_parser("export", help="write an earlier calibration for another tool (COLMAP, Kalibr, mrcal, Isaac Sim, ...)")
+    ex.add_argument("calibration", type=Path, help="calibration.json, or the output folder holding it")
+    ex.add_argument("--to", required=True, choices=("colmap", "kalibr", "mrcal", "isaac", "mujoco", "blender", "ros", "opencv"),
+                    help="target tool (see the README's 'Taking the calibration elsewhere')")
+    ex.add_argument("--out", type=Path, help="output folder (default: the calibration's folder)")
+    ex.add_argument("--accept-partial", action="store_true",
+                    help="export a calibration calibcoach refused (files named *_untrusted, the reasons inside)")
+
     sub.add_parser("devices", help="list V4L2 and DepthAI cameras with their modes and focus/exposure controls")
 
     fc = sub.add_parser("focus", help="lock, unlock or show a camera's focus (visca:PORT[@BAUD])")
@@ -175,6 +183,10 @@ def main(argv: list[str] | None = None) -> int:
             from calibcoach.app.live_command import live_command
 
             return live_command(args, board_from_args(args), argv=sys.argv if argv is None else ["calibcoach", *argv])
+        if args.command == "export":
+            from calibcoach.app.export.targets import export_command
+
+            return export_command(args)
         if args.command == "devices":
             from calibcoach.app.live_command import devices_command
 

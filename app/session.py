@@ -85,7 +85,7 @@ def _detection_of(view: View) -> Detection:
 
 def _view_of(frame: Frame, detection: Detection) -> View:
     return View(frame.index, frame.name, detection.ids.copy(), detection.corners_px.astype(np.float64),
-                detection.object_points_m.astype(np.float64))
+                detection.object_points_m.astype(np.float64), timestamp_ns=int(frame.timestamp_ns))
 
 
 class CalibrationSession:

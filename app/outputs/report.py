@@ -3,6 +3,7 @@
 Files other tools read as a camera (`camera_matrix.npy`, `dist_coeffs.npy`, `calibration.yaml`,
 `camera_info.yaml`, DepthAI's JSON) only for a trusted result -- or, when the user accepts a
 partial one, under names carrying "untrusted" --, `calibcoach`'s own `calibration.json` always, and
+the board pose of every frame for hand-eye calibration (`board_poses.json`, same rule),
 pictures a person reads (coverage map, tilt/distance bars, residual map, per-frame errors,
 uncertainty map, undistorted check image).
 """
@@ -15,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from calibcoach.app.export.common import untrusted_name
+from calibcoach.app.export.handeye import write_board_poses
 from calibcoach.app.outputs.files import (
     atomic_write_bytes,
     calibration_payload,
@@ -115,6 +118,7 @@ def write_session_outputs(
         written.append(write_opencv_yaml(out_dir / f"calibration{suffix}.yaml", camera, rms_px=cal.rms_px, extra=extra))
         written.append(write_ros_camera_info(out_dir / f"camera_info{suffix}.yaml", camera,
                                              camera_name=source_info.camera_id or "camera", untrusted_because=because))
+        written.append(write_board_poses(out_dir / f"board_poses{suffix}.json", cal, untrusted_because=because))
         if because:
             note = ("This calibration was REFUSED by calibcoach and written only because --accept-partial was given.\n"
                     "Its camera files carry 'untrusted' in their names. Why:\n" + "".join(f"- {r}\n" for r in because))
@@ -126,14 +130,11 @@ def write_session_outputs(
 
 # Files a downstream tool loads as a camera: written for trusted calibrations, and under an
 # "untrusted" name (`untrusted_name`) with --accept-partial; never for a refused one otherwise.
-CAMERA_FILES = ("camera_matrix.npy", "dist_coeffs.npy", "calibration.yaml", "camera_info.yaml", "depthai_calibration.json")
+CAMERA_FILES = ("camera_matrix.npy", "dist_coeffs.npy", "calibration.yaml", "camera_info.yaml", "depthai_calibration.json",
+                "board_poses.json")
+__all__ = ["CAMERA_FILES", "UNTRUSTED_NOTE", "read_detections", "source_summary", "untrusted_name", "write_detections",
+           "write_session_outputs"]
 UNTRUSTED_NOTE = "UNTRUSTED.txt"
-
-
-def untrusted_name(name: str) -> str:
-    """'camera_info.yaml' -> 'camera_info_untrusted.yaml'."""
-    stem, dot, ext = name.rpartition(".")
-    return f"{stem}_untrusted{dot}{ext}"
 
 
 def write_detections(path: Path, views: Sequence[View]) -> Path:

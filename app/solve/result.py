@@ -22,6 +22,7 @@ class View:
     # frames of one hold share their pose-dependent corner errors (blur, print, light at that spot),
     # so a group of k counts 1/k each. The solve itself uses every frame at full weight.
     information_weight: float = 1.0
+    timestamp_ns: int | None = None  # the frame's capture time (source clock); None where unknown
 
 
 @dataclass(frozen=True, slots=True)
