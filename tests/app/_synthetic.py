@@ -70,3 +70,21 @@ def fisheye_lens(hfov_deg: float, size=SIZE, dist=(0.0, 0.0, 0.0, 0.0)) -> Camer
     w, h = size
     f = (w / 2.0) / np.radians(hfov_deg / 2.0)
     return CameraModel("fisheye", [[f, 0, (w - 1) / 2.0 + 1.3], [0, f * 0.999, (h - 1) / 2.0 - 0.8], [0, 0, 1]], dist, size)
+
+
+def detection_at(camera, centre_px, distance_m=0.9, *, tilt_x=0.0, tilt_y=0.0, roll=0.0, keep=None, spec=None):
+    """An exact detection of the board placed in image space (`sim_paths.place_board`): the corners
+    that land inside the image (and in `keep`, a (N,) bool over the board's corners), float32."""
+    from calibcoach.coverage.detector import Detection
+    from calibcoach.drivers.sim_paths import place_board
+
+    spec = spec or BoardSpec()
+    w, h = camera.image_size
+    rvec, tvec = place_board(camera, spec, centre_px, distance_m, tilt_x_deg=tilt_x, tilt_y_deg=tilt_y, roll_deg=roll)
+    obj = spec.corner_points_m()
+    px = camera.project(obj, rvec, tvec)
+    inside = (px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0) & (px[:, 1] <= h - 1)
+    if keep is not None:
+        inside &= keep
+    ids = np.nonzero(inside)[0].astype(np.int32)
+    return Detection(px[inside].astype(np.float32), ids, obj[inside].astype(np.float32), np.arange(44, dtype=np.int32))
