@@ -97,3 +97,40 @@ def test_look_alike_correlation_of_small_or_empty_residuals() -> None:
     zero = np.zeros((70, 2))
     assert look_alike_correlation(views, [zero, small, small], [0, 0, 1]) == 0.0  # one frame without residuals
     assert look_alike_correlation(views, [small, zero, small], [0, 0, 1]) == 0.0
+
+
+def test_the_trimmed_frame_rms() -> None:
+    """The frame statistic: a gaussian frame's RMS, unmoved by its worst tenth of corners, moved by more."""
+    from calibcoach.app.solve.robust import robust_frame_rms_px
+
+    rng = np.random.default_rng(26)
+    frames = [rng.normal(0, 0.3, (70, 2)) for _ in range(2000)]
+    ratio = np.array([robust_frame_rms_px(r) / np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in frames])
+    assert np.mean(ratio) == pytest.approx(1.0, abs=0.01) and np.std(ratio) < 0.05  # the plain RMS, unbiased
+    r = frames[0].copy()
+    r[:7] += 50.0  # 7 of 70 corners 70 px off: left out, and the 63 clean ones taken for the best 90%
+    plain_63 = np.sqrt(np.mean(np.sum(frames[0][7:] ** 2, axis=1)))
+    assert robust_frame_rms_px(r) == pytest.approx(plain_63 / np.sqrt(0.74416), rel=1e-4)  # 1.16x: never more
+    r[7] += 50.0  # the eighth is counted
+    assert robust_frame_rms_px(r) > 5.0
+    few = rng.normal(0, 0.3, (9, 2))  # under 10 corners none is left out: the plain RMS
+    assert robust_frame_rms_px(few) == pytest.approx(np.sqrt(np.mean(np.sum(few**2, axis=1))))
+    assert robust_frame_rms_px(np.zeros((0, 2))) == 0.0
+
+
+@pytest.mark.parametrize(("bad", "frame_dropped"), [(6, False), (12, True)])
+def test_bad_corners_go_as_corners_up_to_a_tenth_of_the_frame(bad: int, frame_dropped: bool) -> None:
+    """0.2 px session, one frame with `bad` corners 10 px off: 6 of 70 go as corners and the frame
+    stays with its other 64; 12 of 70 are the frame's bulk being off, and it goes whole."""
+    rng, _poses, views, _mask = session(27, 0.2, n=10)
+    idx = rng.choice(70, bad, replace=False)
+    px = views[5].image_points_px.copy()
+    angles = rng.uniform(0, 2 * np.pi, bad)
+    px[idx] += 10.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    views[5] = replace(views[5], image_points_px=px)
+    cal = robust_calibrate(views, SIZE, "pinhole")
+    assert ([f.frame_index for f in cal.dropped_frames] == [5]) is frame_dropped
+    if not frame_dropped:
+        assert cal.dropped_frames == ()
+        assert {(c.frame_index, c.corner_id) for c in cal.dropped_corners} == {(5, int(i)) for i in idx}
+        assert cal.corner_count == 10 * 70 - bad
