@@ -9,12 +9,10 @@ import pytest
 
 from calibcoach.app.solve import uncertainty as U
 from calibcoach.app.solve.result import View
-from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.lens import CameraModel
 
-SIZE = (1280, 720)
-BOARD = BoardSpec().corner_points_m()  # (70, 3) the default 8x11 board
-IDS = np.arange(BOARD.shape[0], dtype=np.int32)
+from _synthetic import BOARD, IDS, SIZE, observe, pose_at, random_poses, stacked
+
 LENSES = {
     "pinhole": CameraModel("pinhole", [[900, 0, 645.0], [0, 905, 355.0], [0, 0, 1]], [-0.2, 0.08, 5e-4, -3e-4, -0.01], SIZE),
     "rational": CameraModel(
@@ -22,41 +20,6 @@ LENSES = {
     ),
     "fisheye": CameraModel("fisheye", [[460, 0, 641.0], [0, 458, 359.0], [0, 0, 1]], [0.03, -0.01, 0.004, -0.001], SIZE),
 }
-
-
-def pose_at(camera, pixel, distance_m, tilt_x_deg, tilt_y_deg, roll_deg=0.0):
-    """T_cam_board putting the board centre on `pixel`'s ray at `distance_m`, tilted (rvec, tvec)."""
-    ray = camera.unproject(np.asarray(pixel, float).reshape(1, 2))[0]
-    R = cv2.Rodrigues(np.radians([tilt_x_deg, 0.0, 0.0]))[0] @ cv2.Rodrigues(np.radians([0.0, tilt_y_deg, roll_deg]))[0]
-    return cv2.Rodrigues(R)[0].reshape(3), ray * distance_m - R @ BOARD.mean(axis=0)
-
-
-def random_poses(camera, n, rng, *, region=(0.15, 0.85), distance_m=(0.6, 1.0), tilt_deg=35.0):
-    """n poses whose 70 corners all land inside the image (5 px margin)."""
-    w, h = camera.image_size
-    poses = []
-    while len(poses) < n:
-        pixel = rng.uniform([region[0] * w, region[0] * h], [region[1] * w, region[1] * h])
-        r, t = pose_at(camera, pixel, rng.uniform(*distance_m), *rng.uniform(-tilt_deg, tilt_deg, 2), rng.uniform(-20, 20))
-        px = camera.project(BOARD, r, t)
-        if np.all((px >= 5) & (px <= [w - 6, h - 6])):
-            poses.append((r, t))
-    return poses
-
-
-def observe(camera, poses, rng=None, noise_px=0.2):
-    """Views of the board at `poses`, with gaussian corner noise per coordinate when rng is given."""
-    views = []
-    for i, (r, t) in enumerate(poses):
-        px = camera.project(BOARD, r, t)
-        if rng is not None:
-            px = px + rng.normal(0.0, noise_px, px.shape)
-        views.append(View(i, "", IDS, px, BOARD))
-    return views
-
-
-def stacked(poses):
-    return np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
 
 
 def perturbed(camera, name, eps):

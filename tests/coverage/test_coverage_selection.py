@@ -18,7 +18,8 @@ from calibcoach.coverage.select import FrameSelector, SelectorSettings, board_mo
 from calibcoach.coverage.sharpness import EdgeBlur
 from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.lens import CameraModel
-from calibcoach.drivers.sim_paths import place_board
+
+from _synthetic import detection_at as synthetic_detection
 
 SPEC = BoardSpec()
 CAMERA = CameraModel("pinhole", [[900, 0, 640], [0, 900, 360], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1280, 720))
@@ -36,14 +37,7 @@ def selector(**settings) -> FrameSelector:
 
 
 def detection_at(centre_px, distance_m=0.9, *, tilt_x=0.0, tilt_y=0.0, keep=None) -> Detection:
-    rvec, tvec = place_board(CAMERA, SPEC, centre_px, distance_m, tilt_x_deg=tilt_x, tilt_y_deg=tilt_y)
-    obj = SPEC.corner_points_m()
-    px = CAMERA.project(obj, rvec, tvec)
-    inside = (px[:, 0] >= 0) & (px[:, 0] <= W - 1) & (px[:, 1] >= 0) & (px[:, 1] <= H - 1)
-    if keep is not None:
-        inside &= keep
-    ids = np.nonzero(inside)[0].astype(np.int32)
-    return Detection(px[inside].astype(np.float32), ids, obj[inside].astype(np.float32), np.arange(44, dtype=np.int32))
+    return synthetic_detection(CAMERA, centre_px, distance_m, tilt_x=tilt_x, tilt_y=tilt_y, keep=keep, spec=SPEC)
 
 
 @pytest.mark.parametrize(("tilt_x", "tilt_y"), [(0, 0), (35, 0), (-35, 0), (0, 40), (0, -40)])

@@ -1,0 +1,128 @@
+"""Model choice on synthetic views of lenses with known fields of view: 70 deg (pinhole), ~115 deg
+(rational), 150 and 190 deg (fisheye).
+
+The 190 deg lens is an equidistant Kannala-Brandt lens built here (the simulator's widest is 150
+deg); its views keep every corner within 85 deg of the optical axis, in front of the camera, so
+each corner is one a real lens would image (`_synthetic.random_poses(max_off_axis_deg=...)`).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibcoach.app.solve.model_choice import (
+    MIN_VIEWS_FOR_CROSS_VALIDATION,
+    candidate_order,
+    choose_model,
+    estimate_hfov_deg,
+    held_out_rms,
+)
+from calibcoach.drivers.sim import LENSES
+
+from _synthetic import BOARD, SIZE, fisheye_lens, observe, random_poses
+
+FISHEYE190 = fisheye_lens(190.0, dist=(0.01, -0.005, 0.001, 0.0))
+CASES = {  # lens, view placement, model, horizontal field of view (deg)
+    "webcam720": (LENSES["webcam720"], {"distance_m": (0.5, 0.9)}, "pinhole", 70.0),
+    "wide720": (LENSES["wide720"], {"region": (0.05, 0.95), "distance_m": (0.3, 0.6), "tilt_deg": 40}, "rational", 115.0),
+    "fisheye150": (LENSES["fisheye150"], {"region": (0.05, 0.95), "distance_m": (0.25, 0.5), "tilt_deg": 40,
+                                          "max_off_axis_deg": 80}, "fisheye", 150.0),
+    "fisheye190": (FISHEYE190, {"region": (0.02, 0.98), "distance_m": (0.2, 0.45), "tilt_deg": 40, "max_off_axis_deg": 85},
+                   "fisheye", 188.1),
+}
+
+
+def views_of(lens: str, seed: int, n: int = 16, noise_px: float = 0.2):
+    camera, placement, _, _ = CASES[lens]
+    rng = np.random.default_rng(seed)
+    return observe(camera, random_poses(camera, n, rng, **placement), rng, noise_px=noise_px)
+
+
+def test_the_190_deg_lens_and_its_views_are_physical() -> None:
+    hfov, vfov = FISHEYE190.field_of_view_deg()
+    assert hfov == pytest.approx(188.1, abs=0.5) and vfov > 100
+    rng = np.random.default_rng(0)
+    poses = random_poses(FISHEYE190, 16, rng, **CASES["fisheye190"][1])
+    import cv2
+
+    widest = 0.0
+    for r, t in poses:
+        pts = BOARD @ cv2.Rodrigues(r)[0].T + t
+        off_axis = np.degrees(np.arccos(pts[:, 2] / np.linalg.norm(pts, axis=1)))
+        assert np.all(pts[:, 2] > 0) and off_axis.max() <= 85.0  # in front, inside the field of view
+        px = FISHEYE190.project(BOARD, r, t)
+        assert np.all((px >= 0) & (px <= np.array(SIZE) - 1))
+        rays = FISHEYE190.unproject(px)  # the pixels see those points: the round trip returns their rays
+        np.testing.assert_allclose(rays, pts / np.linalg.norm(pts, axis=1, keepdims=True), atol=1e-7)
+        widest = max(widest, off_axis.max())
+    assert widest > 75.0  # the views do reach far past where a pinhole could see
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("lens", list(CASES))
+def test_choose_model_picks_the_lens_model(lens: str, seed: int) -> None:
+    _, _, model, hfov = CASES[lens]
+    choice = choose_model(views_of(lens, seed), SIZE)
+    assert choice.chosen == model, choice.reason
+    said = float(re.match(r"~(\d+) deg horizontal field of view", choice.reason)[1])
+    assert said == pytest.approx(hfov, abs=4.0)
+    assert list(choice.candidates) == candidate_order(said)
+    best = min(choice.candidates.values())
+    assert choice.candidates[model] <= 1.05 * best + 0.005  # within the margin of the best held-out error...
+    assert choice.candidates[model] == pytest.approx(0.2 * np.sqrt(2), rel=0.15)  # ...which is the planted noise
+    assert choice.reason.endswith(f"{model} is the simplest within 5% of the best")
+    for other in choice.candidates:
+        assert f"{other} {choice.candidates[other]:.3f} px" in choice.reason
+
+
+@pytest.mark.parametrize("lens", ["wide720", "fisheye150"])
+def test_a_pinhole_fails_the_held_out_frames_of_a_wide_lens(lens: str) -> None:
+    """Cross-validation, not the field of view alone: the 5-term model cannot follow 115 deg or more."""
+    from calibcoach.app.solve.calibrate import solve
+
+    views = views_of(lens, 0)
+    odd, even = views[1::2], views[0::2]
+    pinhole = solve(odd, SIZE, "pinhole").camera
+    right = solve(odd, SIZE, CASES[lens][2]).camera
+    assert held_out_rms(right, even) == pytest.approx(0.2 * np.sqrt(2), rel=0.15)
+    assert held_out_rms(pinhole, even) > 1.15 * held_out_rms(right, even)  # 3x the 5% margin
+
+
+def test_held_out_rms_is_the_truths_noise_and_ignores_the_worst_tenth() -> None:
+    camera = CASES["webcam720"][0]
+    views = views_of("webcam720", 2, n=10, noise_px=0.3)
+    clean = held_out_rms(camera, views)
+    assert clean == pytest.approx(0.3 * np.sqrt(2), rel=0.1)
+    rng = np.random.default_rng(5)
+    views[4] = replace(views[4], image_points_px=views[4].image_points_px + rng.normal(0, 3.0, (70, 2)))
+    assert held_out_rms(camera, views) <= clean * 1.02  # one smeared view of ten is not counted
+    views[5] = replace(views[5], image_points_px=views[5].image_points_px + rng.normal(0, 3.0, (70, 2)))
+    assert held_out_rms(camera, views) > 3 * clean  # two are: ceil(0.9 * 10) = 9 views count
+    assert held_out_rms(camera, []) == float("inf")
+
+
+@pytest.mark.parametrize(("hfov", "order"), [
+    (60.0, ["pinhole", "rational"]), (79.9, ["pinhole", "rational"]), (80.0, ["pinhole", "rational", "fisheye"]),
+    (89.9, ["pinhole", "rational", "fisheye"]), (90.0, ["rational", "fisheye", "pinhole"]),
+    (119.9, ["rational", "fisheye", "pinhole"]), (120.0, ["fisheye", "rational"]), (200.0, ["fisheye", "rational"]),
+])
+def test_candidate_order_by_field_of_view(hfov: float, order: list[str]) -> None:
+    assert candidate_order(hfov) == order
+
+
+@pytest.mark.parametrize(("lens", "chosen"), [("webcam720", "pinhole"), ("wide720", "pinhole"), ("fisheye150", "fisheye")])
+def test_too_few_views_take_the_model_from_the_field_of_view(lens: str, chosen: str) -> None:
+    n = MIN_VIEWS_FOR_CROSS_VALIDATION - 1
+    assert n == 7
+    choice = choose_model(views_of(lens, 3, n=n), SIZE)
+    assert choice.chosen == chosen and choice.candidates == {}
+    assert choice.reason.startswith(f"only 7 views: too few to cross-validate, so the {chosen} model was taken from the ~")
+
+
+@pytest.mark.parametrize("lens", list(CASES))
+def test_estimated_field_of_view(lens: str) -> None:
+    assert estimate_hfov_deg(views_of(lens, 4, n=10), SIZE) == pytest.approx(CASES[lens][3], abs=4.0)
