@@ -31,6 +31,7 @@ from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
 MIN_CORNERS = 6
+_UNPOSABLE_TRIES = 6  # frames with fewest corners tried when a fisheye solve cannot start (each try is a solve)
 # chi-square with 2 dof: 18.42 is the 99.99% point, so a clean solve drops ~1 corner in 10,000.
 _CORNER_CHI2 = 18.42
 _CORNER_FLOOR_PX = 0.3  # never call a residual below this an outlier: sub-0.3 px is normal corner noise
@@ -126,7 +127,33 @@ def robust_calibrate(
                 "(check that focus was locked and the board is flat)"
             )
 
-    raw = solve(frames, image_size, model, initial=initial)
+    def solve_kept(start: CameraModel | None):
+        """Solve the kept frames' kept corners; a fisheye solve that cannot start leaves out the frame that stops it.
+
+        cv2.fisheye.calibrate initialises every view's pose from a homography and asserts on the
+        whole solve when one view's is degenerate (seen on a 6-corner view at a 150 deg lens's
+        edge). Such a frame is found by leaving out, one at a time, the frames with fewest corners."""
+        try:
+            return solve([_subset(f, o) for f, o in zip(frames, outs, strict=True)], image_size, model, initial=start)
+        except CalibrationError as failure:
+            if model != "fisheye" or len(frames) <= 4:
+                raise
+            error = failure
+        weakest = sorted(range(len(frames)), key=lambda i: int((~outs[i]).sum()))[:_UNPOSABLE_TRIES]
+        for i in weakest:
+            rest = [_subset(f, o) for j, (f, o) in enumerate(zip(frames, outs, strict=True)) if j != i]
+            try:
+                solution = solve(rest, image_size, model, initial=start)
+            except CalibrationError:
+                continue
+            dropped_frames.append(DroppedFrame(frames[i].frame_index, (
+                f"the fisheye solve cannot initialise this frame's pose from its {int((~outs[i]).sum())} corners")))
+            dropped_corners.extend(corners_of(i))
+            keep_frames([j != i for j in range(len(frames))])
+            return solution
+        raise error
+
+    raw = solve_kept(initial)
     for _round in range(max_rounds):
         # every corner of every kept frame, those set aside too, against the latest solve
         residuals = reprojection_residuals(raw.camera, frames, raw.rvecs, raw.tvecs)
@@ -148,7 +175,7 @@ def robust_calibrate(
                     dropped_corners.extend(corners_of(i))
                 keep_frames(list(~bad_frames))
                 # the dropped frames pulled this solve: judge no corner against it
-                raw = solve([_subset(f, o) for f, o in zip(frames, outs, strict=True)], image_size, model, initial=raw.camera)
+                raw = solve_kept(raw.camera)
                 continue
         # 2. corners, against a solve no outlier frame pulls; the MAD sigma over all of them
         # (those set aside too) does not shrink as corners are set aside
@@ -164,7 +191,7 @@ def robust_calibrate(
                 dropped_frames.append(DroppedFrame(frames[i].frame_index, f"only {int((~outs[i]).sum())} corners left after removing outlier corners"))
                 dropped_corners.extend(corners_of(i))
             keep_frames([not f for f in few])
-        raw = solve([_subset(f, o) for f, o in zip(frames, outs, strict=True)], image_size, model, initial=raw.camera)
+        raw = solve_kept(raw.camera)
     for i in range(len(frames)):
         dropped_corners.extend(corners_of(i))
     kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]

@@ -19,6 +19,7 @@ import pytest
 from calibcoach.app.solve import uncertainty as U
 from calibcoach.app.solve.calibrate import reprojection_residuals, solve
 from calibcoach.app.solve.compare import projection_difference
+from calibcoach.app.solve.result import View
 from calibcoach.app.solve.robust import (
     build_calibration,
     look_alike_correlation,
@@ -39,7 +40,7 @@ from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim import LENSES
 
-from _synthetic import BOARD, SIZE, observe, random_poses, stacked
+from _synthetic import BOARD, IDS, SIZE, observe, random_poses, stacked
 
 CAMERA = LENSES["webcam720"]
 GRID = (32, 18)
@@ -400,3 +401,23 @@ def test_build_calibration_reports_rms_per_view_and_all() -> None:
     assert cal.rms_px == pytest.approx(float(np.sqrt(np.mean(np.sum(np.concatenate(res) ** 2, axis=1)))))
     assert cal.rms_px == pytest.approx(0.2 * np.sqrt(2), rel=0.1)  # truth's residuals are the planted noise
     assert cal.intrinsic_names == U.intrinsic_names("pinhole") and cal.intrinsic_covariance.shape == (9, 9)
+
+
+def test_a_fisheye_view_whose_pose_cannot_be_initialised_is_left_out_not_fatal() -> None:
+    # cv2.fisheye.calibrate asserts (InitExtrinsics, norm_u1 > 0) on the whole solve when one view's corners
+    # lie on a line; seen live on a 6-corner view at a 150 deg lens's edge after outlier corners went
+    camera = LENSES["fisheye150"]
+    rng = np.random.default_rng(0)
+    views = observe(camera, random_poses(camera, 12, rng, region=(0.05, 0.95), distance_m=(0.25, 0.5), tilt_deg=40,
+                                         max_off_axis_deg=80), rng)
+    r, t = random_poses(camera, 1, np.random.default_rng(5), region=(0.3, 0.7), distance_m=(0.3, 0.4), tilt_deg=20,
+                        max_off_axis_deg=80)[0]
+    row = np.arange(6)  # one board row: six collinear corners
+    line = View(99, "", IDS[row], camera.project(BOARD[row], r, t), BOARD[row])
+    with pytest.raises(CalibrationError, match="InitExtrinsics"):
+        solve([*views, line], camera.image_size, "fisheye")
+    calibration = robust_calibrate([*views, line], camera.image_size, "fisheye")
+    assert [d.frame_index for d in calibration.dropped_frames] == [99]
+    assert "cannot initialise" in calibration.dropped_frames[0].reason
+    without = robust_calibrate(views, camera.image_size, "fisheye")  # the same as never having seen it
+    assert projection_difference(without.camera, calibration.camera, grid=(32, 18)).rms_px < 1e-3
