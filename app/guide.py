@@ -4,10 +4,13 @@ After every change of the data (a frame accepted, new intrinsics) the session ha
 fresh ranking of candidate poses (`app/solve/next_view.py`); the guide shows the best one that
 has not failed. A target fails, and is not asked for again, when the board was held at it
 (centre, tilts and range within a person's error of it, for `EXECUTED_S`) and nothing was
-accepted: the pose could not be registered, whatever the model predicted. A target that has
-been up for `STALE_S` without anything accepted is also set aside, until three more frames have
-been accepted: the person may have tried and the detector seen nothing. Both rules together
-keep the same unregistered pose from being asked for three times running.
+accepted: the pose could not be registered, whatever the model predicted. A target is also set
+aside, until three more frames have been accepted, when the person held the board still
+`HOLDS_TO_SET_ASIDE` times since it came up (anywhere: their execution may be further off than
+"at the target" allows) or when it has been up for `STALE_S`, without anything accepted: the
+person tried and the pose did not register. Counting holds rather than seconds keeps the rule
+independent of how fast a person moves; the time limit covers holds the detector never saw. The
+rules together keep the same unregistered pose from being asked for three times running.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ SET_ASIDE_ACCEPTS = 3  # a stale target may come back after this many accepted f
 NEAR_CENTRE = 0.10  # share of the image diagonal
 NEAR_TILT_DEG = 15.0
 NEAR_RANGE = 0.2  # relative
+HOLDS_TO_SET_ASIDE = 2  # still holds (anywhere) after a target came up, none accepted: try another
+HOLD_STILL = 0.015  # share of the image diagonal the board centre stays within during a hold (a hand's
+# tremor moves it ~0.3% at 0.6 m; a move between poses crosses 10-40% of the image)
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +58,8 @@ class Guide:
         self._near_since_ns: int | None = None
         self._camera: CameraModel | None = None
         self._accepted = 0
+        self._hold: tuple[np.ndarray, int, bool] | None = None  # (centre_px, since_ns, counted) of the current stillness
+        self._holds = 0  # holds begun after the shown target came up
 
     @property
     def excluded(self) -> set[tuple]:
@@ -70,6 +78,7 @@ class Guide:
     def observe(self, timestamp_ns: int, pose: BoardPose | None, *, accepted: int) -> None:
         """One processed frame: the board's pose (None when not seen) and frames accepted so far."""
         self._accepted = accepted
+        held_since = self._stillness(timestamp_ns, pose)  # before any target change: a hold goes on across it
         best = self.best
         shown = self._shown
         if best is None:
@@ -79,19 +88,40 @@ class Guide:
             # a new target, or the data changed under the old one: it starts afresh
             self._shown = _Shown(best, timestamp_ns, accepted)
             self._near_since_ns = None
+            self._holds = 0
             return
         key = shown.ranked.candidate.key
+        if held_since is not None and held_since > shown.issued_ns:  # a try begun after the target came up
+            self._holds += 1
         if pose is not None and self._is_near(pose, shown.ranked):
             self._near_since_ns = timestamp_ns if self._near_since_ns is None else self._near_since_ns
             if timestamp_ns - self._near_since_ns >= EXECUTED_S * 1e9:
                 self.failed.add(key)
         else:
             self._near_since_ns = None
-        if key not in self.failed and timestamp_ns - shown.issued_ns >= STALE_S * 1e9:
+        if key not in self.failed and (timestamp_ns - shown.issued_ns >= STALE_S * 1e9
+                                       or self._holds >= HOLDS_TO_SET_ASIDE):
             self._set_aside[key] = accepted + SET_ASIDE_ACCEPTS
         if key in self.excluded:
             self._shown = None
             self.observe(timestamp_ns, None, accepted=accepted)  # show the next best at once
+
+    def _stillness(self, timestamp_ns: int, pose: BoardPose | None) -> int | None:
+        """When the board has just stayed put for EXECUTED_S: when that hold began (once per hold), else None."""
+        centre = None if pose is None or self._camera is None else self._camera.project(
+            (pose_matrix(pose.rvec) @ self.board_centre_m + pose.tvec).reshape(1, 3))[0]
+        if centre is None or not np.all(np.isfinite(centre)):
+            self._hold = None
+            return None
+        limit = HOLD_STILL * float(np.hypot(*self.image_size))
+        if self._hold is None or np.linalg.norm(centre - self._hold[0]) > limit:
+            self._hold = (centre, timestamp_ns, False)
+            return None
+        anchor, since, counted = self._hold
+        if counted or timestamp_ns - since < EXECUTED_S * 1e9:
+            return None
+        self._hold = (anchor, since, True)
+        return since
 
     def _is_near(self, pose: BoardPose, ranked: RankedPose) -> bool:
         cand = ranked.candidate
