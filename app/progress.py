@@ -29,7 +29,7 @@ class SolveStages:
 
     `stages(name)` as each stage begins (a callable for `CalibrationSession.finish(on_stage=...)`),
     `stages.say(line)` for a line on stderr that must not tear the bar; leaving the block fills the
-    bar to 100%, unless an exception leaves it. Does nothing off a terminal or with --quiet.
+    bar to 100%; an exception leaving it clears the bar instead. Does nothing off a terminal or with --quiet.
     """
 
     def __init__(self, *, enabled: bool) -> None:
@@ -60,5 +60,7 @@ class SolveStages:
         if exc_type is None:
             self._bar.n = len(SOLVE_STAGES)
             self._bar.set_postfix_str("done", refresh=False)
+        else:  # the error's own message says what happened: no half-filled bar above it
+            self._bar.leave = False
         self._bar.close()
         self._bar = None
