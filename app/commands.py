@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from calibcoach.app.outputs.report import write_session_outputs
+from calibcoach.app.progress import SolveStages, terminal_bar
 from calibcoach.app.replay import run_replay
 from calibcoach.app.session import FrameOutcome, Progress, SessionSettings
 from calibcoach.coverage.board import BoardSpec
@@ -18,7 +19,7 @@ from calibcoach.drivers.replay import open_source
 
 
 class ProgressLine:
-    """One status line, rewritten in place on a terminal and printed every few seconds otherwise."""
+    """A progress bar of frames read on a terminal (`progress.py`); a line every few seconds otherwise."""
 
     def __init__(self, total: int | None, *, enabled: bool) -> None:
         self.total = total
@@ -27,9 +28,19 @@ class ProgressLine:
         self._last = 0.0
         self._start = time.perf_counter()
         self._last_guidance = ""
+        self._bar = terminal_bar(enabled=enabled, total=total or None, desc="reading", unit="frame")
 
     def __call__(self, outcome: FrameOutcome, frame: Frame) -> None:
         if not self.enabled:
+            return
+        if self._bar is not None:
+            p = outcome.progress
+            read = outcome.frame_index + 1  # a folder read sparsely passes over frames: its position, not a count
+            if self._bar.total is not None and read > self._bar.total:  # a video whose header undercounts
+                self._bar.total = read
+            self._bar.update(max(0, read - self._bar.n))
+            self._bar.set_postfix_str(f"kept {p.frames_accepted}, coverage {p.coverage * 100:.0f}%, "
+                                      f"E {error_words(p)}, last: {outcome.decision.reason}", refresh=False)
             return
         now = time.perf_counter()
         if now - self._last < (0.1 if self.tty else 5.0) and not outcome.progress.done:
@@ -49,7 +60,10 @@ class ProgressLine:
             print(f"  next: {outcome.guidance.sentence}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
-        if self.enabled and self.tty:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        elif self.enabled and self.tty:
             print(file=sys.stderr)
 
 
@@ -171,17 +185,19 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
               if stats.passed_over else "")
     print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{passed}); "
           f"kept {len(session.views)}; solving...", file=sys.stderr)
-    result = session.finish()
-    rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])
-                         if n and reason != "accepted")
-    added, reserve = session.budget_fill
-    print(f"calibcoach: rejected {rejected or 'nothing'}; the final solve also took {added} of {reserve} usable "
-          "frames held in reserve (highest information first)", file=sys.stderr)
-    written = write_session_outputs(
-        args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
-        replay_seconds=stats.seconds, frames_read=stats.frames_read, stopped_early=stats.stopped_early,
-    )
-    viewer.log_result(result, Path(args.out))
+    with SolveStages(enabled=not args.quiet) as stages:
+        result = session.finish(on_stage=stages)
+        rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])
+                             if n and reason != "accepted")
+        added, reserve = session.budget_fill
+        stages.say(f"calibcoach: rejected {rejected or 'nothing'}; the final solve also took {added} of {reserve} usable "
+                   "frames held in reserve (highest information first)")
+        stages("outputs")
+        written = write_session_outputs(
+            args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
+            replay_seconds=stats.seconds, frames_read=stats.frames_read, stopped_early=stats.stopped_early,
+        )
+        viewer.log_result(result, Path(args.out))
     written.append(Path(args.out) / "session.rrd")
     cal, verdict = result.calibration, result.verdict
     K = cal.camera.camera_matrix

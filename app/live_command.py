@@ -13,6 +13,7 @@ from calibcoach.app.assistant import step_record
 from calibcoach.app.commands import board_for_source, error_words, keep_serving, open_viewer, session_settings
 from calibcoach.app.live import LiveStats, PacedSource, run_live
 from calibcoach.app.outputs.report import untrusted_name, write_session_outputs
+from calibcoach.app.progress import SolveStages
 from calibcoach.app.session import FrameOutcome
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.base import Frame, FrameSource
@@ -173,13 +174,14 @@ def _finish_live(args: argparse.Namespace, argv: list[str], info: Any, session: 
               file=sys.stderr)
     if session is None:
         raise CalibcoachError(f"{info.description} delivered no frames; check the camera and the --source")
-    result = session.finish()
-    lens_state = {**dict(info.controls), **locked}
-    written = write_session_outputs(
-        args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
-        replay_seconds=stats.seconds, frames_read=stats.frames_processed, stopped_early=stats.stopped_early,
-        lens_state=lens_state,
-    )
+    with SolveStages(enabled=not args.quiet) as stages:
+        result = session.finish(on_stage=stages)
+        stages("outputs")
+        written = write_session_outputs(
+            args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
+            replay_seconds=stats.seconds, frames_read=stats.frames_processed, stopped_early=stats.stopped_early,
+            lens_state={**dict(info.controls), **locked},
+        )
     trusted = bool(result.verdict.trusted)
     lens = int(locked["lens_position"]) if "lens_position" in locked else None
     if info.kind == "depthai" and (trusted or args.accept_partial):

@@ -11,7 +11,7 @@ chooses the model, maps the uncertainty and judges the result. Detection is done
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import cv2
@@ -406,8 +406,13 @@ class CalibrationSession:
         return ""
 
     # --- the end --------------------------------------------------------------------------------
-    def finish(self) -> SessionResult:
-        """Final robust solve, model choice, uncertainty map and verdict."""
+    def finish(self, on_stage: Callable[[str], None] | None = None) -> SessionResult:
+        """Final robust solve, model choice, uncertainty map and verdict.
+
+        `on_stage(name)` is told as each stage begins ("frame budget", "model choice", "robust solve",
+        "uncertainty", "verdict": `progress.SOLVE_STAGES`), for a progress bar.
+        """
+        stage = on_stage or (lambda _name: None)
         if self.drifted_ranges:  # taken at another focus: another camera
             self.views = [v for v in self.views if not self._drifted(v.frame_index)]
             self._reserve = [(v, q) for v, q in self._reserve if not self._drifted(v.frame_index)]
@@ -420,20 +425,25 @@ class CalibrationSession:
             self._reserve = [r for r in self._reserve if not any(r is t for t in taken)]
         if len(self.views) < 3:
             raise self._not_enough_views_error()
+        stage("frame budget")
         self._fill_budget()
+        stage("model choice")
         if self.settings.model == "auto":
             choice = choose_model(self.views, self.image_size)
         else:
             choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
         initial = self.camera if self.camera.model == choice.chosen else None
+        stage("robust solve")
         calibration = self._with_look_alikes_weighted(
             robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial))
         corner_sets = [v.image_points_px for v in calibration.views]
         # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve
+        stage("uncertainty")
         uncertainty = projection_uncertainty(
             calibration.camera, calibration.intrinsic_covariance,
             covered_mask_fn=lambda gx, gy: covered_region_mask(self.image_size, corner_sets, (gx.size, gy.size)),
         )
+        stage("verdict")
         coverage = self._final_coverage(calibration)
         noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
                                n_params=len(calibration.intrinsic_names), n_views=len(calibration.views))

@@ -5,7 +5,8 @@ Files other tools read as a camera (`camera_matrix.npy`, `dist_coeffs.npy`, `cal
 partial one, under names carrying "untrusted" --, `calibcoach`'s own `calibration.json` always, and
 the board pose of every frame for hand-eye calibration (`board_poses.json`, same rule),
 pictures a person reads (coverage map, tilt/distance bars, residual map, per-frame errors,
-uncertainty map, undistorted check image).
+uncertainty map, undistorted check image), and `report.html` holding all of it for a person
+(`html_report.py`), written for refused calibrations too.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from calibcoach.app.outputs.files import (
     write_opencv_yaml,
     write_ros_camera_info,
 )
+from calibcoach.app.outputs.html_report import REPORT_NAME, write_html_report
 from calibcoach.app.outputs.pictures import (
     bars_picture,
     coverage_picture,
@@ -124,7 +126,10 @@ def write_session_outputs(
                     "Its camera files carry 'untrusted' in their names. Why:\n" + "".join(f"- {r}\n" for r in because))
             written.append(atomic_write_bytes(out_dir / UNTRUSTED_NOTE, note.encode("utf-8")))
     written.append(write_detections(out_dir / "detections.npz", cal.views))
-    written += _pictures(out_dir, result)
+    pictures = _pictures(out_dir, result)
+    written += pictures
+    # the person's page, refused or not (it is a report, not a camera file: never in CAMERA_FILES)
+    written.append(write_html_report(out_dir / REPORT_NAME, payload, pictures, accept_partial=accept_partial))
     return written
 
 

@@ -7,17 +7,9 @@ so it can be skipped locally (`pytest -m "not browser"`); CI installs chromium a
 
 from __future__ import annotations
 
-import base64
-import json
-import os
-import shutil
-import socket
-import subprocess
 import time
-import urllib.request
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -27,23 +19,10 @@ from calibcoach.app.viewer import Viewer
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import open_source
 
+from _browser import capture_screenshot, devtools_page, free_port
+
 pytestmark = pytest.mark.browser
 RENDER_WAIT_S = 35.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def chromium_path() -> str:
-    path = shutil.which("chromium")
-    if path is None:
-        if os.environ.get("CI"):
-            pytest.fail("chromium is missing on CI: .ci/run installs Debian's chromium package")
-        pytest.skip("chromium is not installed (apt-get install chromium); CI installs it")
-    return path
 
 
 def screenshot(url: str, out: Path, *, wait_s: float, ready=None) -> np.ndarray:
@@ -52,51 +31,16 @@ def screenshot(url: str, out: Path, *, wait_s: float, ready=None) -> np.ndarray:
     Screenshots are taken every few seconds from `wait_s / 2` on, up to `2 * wait_s`: software
     WebGL on a busy CI machine can take longer than on a quiet one, and a fixed sleep would flake.
     """
-    import websocket
-
-    port = free_port()
-    profile = out.parent / "chromium-profile"
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--remote-allow-origins=*",
-             "--window-size=1600,1000", "about:blank"]  # newer chromium refuses DevTools websockets from other origins
-    browser = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        tabs = None
-        for _ in range(200):
-            try:
-                tabs = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=1))
-                break
-            except OSError:
-                time.sleep(0.1)
-        assert tabs, "chromium's DevTools endpoint never came up"
-        page = next(t for t in tabs if t["type"] == "page")
-        ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60)
-        counter = iter(range(1, 1000))
-
-        def call(method: str, **params: object) -> dict:
-            call_id = next(counter)
-            ws.send(json.dumps({"id": call_id, "method": method, "params": params}))
-            while True:
-                message = json.loads(ws.recv())
-                if message.get("id") == call_id:
-                    return message
-
+    with devtools_page(out.parent / "chromium-profile") as call:
         call("Page.enable")
         call("Page.navigate", url=url)
         time.sleep(wait_s / 2)
         deadline = time.monotonic() + 1.5 * wait_s
         while True:
-            data = base64.b64decode(call("Page.captureScreenshot", format="png")["result"]["data"])
-            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-            assert image is not None
+            data, image = capture_screenshot(call)
             if ready is None or ready(image) or time.monotonic() > deadline:
                 break
             time.sleep(4.0)
-        ws.close()
-    finally:
-        browser.kill()
-        browser.wait()
     out.write_bytes(data)
     return image
 
