@@ -200,13 +200,18 @@ def test_detection_is_bit_identical_on_one_and_two_opencv_threads(recordings_dir
         assert np.array_equal(a.ids, b.ids) and np.array_equal(a.corners_px, b.corners_px)
 
 
-def test_guidance_jsonl_writes_every_step_for_other_programs(recordings_dir: Path, tmp_path: Path) -> None:
+def test_guidance_jsonl_writes_every_step_for_other_programs(recordings_dir: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
     steps_path = tmp_path / "steps.jsonl"
     code = main(["live", "--source", str(recordings_dir / "frontal_webcam720"), "--out", str(tmp_path / "o"),
                  "--no-viewer", "--quiet", "--guidance-jsonl", str(steps_path)])
     assert code == 3  # a frontal capture is refused
     lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
-    assert [s["frame_index"] for s in lines] == list(range(20))  # paced at its own 5 fps: every frame decided
+    processed, dropped = (int(n) for n in re.search(r"processed (\d+) frames \(.*?(\d+) dropped",
+                                                    capsys.readouterr().err).groups())
+    # one step per decided frame, in order (a loaded machine drops some of the 20 frames: never decided)
+    indices = [s["frame_index"] for s in lines]
+    assert len(indices) == processed and processed + dropped == 20 and indices == sorted(set(indices))
     assert sum(s["accepted"] for s in lines) >= 1
     for s in lines:
         target = s["guidance"]["target"]
