@@ -54,10 +54,18 @@ def subset(det: Detection, ids) -> Detection:
     return Detection(det.corners_px[keep], det.ids[keep], det.object_points_m[keep], det.marker_ids)
 
 
+def consistent(d):
+    """A decision is accepted exactly when its reason says so (a rejected frame never reaches the solve)."""
+    assert d.accepted is (d.reason == "accepted"), d
+    return d
+
+
 def decide(sel, det, pose, **kw):
     kw.setdefault("motion_px_s", None)
     kw.setdefault("blur_px", 1.0)
-    return sel.decide(0, det, pose, **kw)[0]
+    d, contribution = sel.decide(0, det, pose, **kw)
+    assert (contribution is not None) is d.accepted  # only a kept frame comes with its coverage to commit
+    return consistent(d)
 
 
 # --- gates 1-2 ----------------------------------------------------------------------------------
@@ -71,8 +79,8 @@ def test_six_corners_are_enough_and_five_are_not() -> None:
     five = sel.gate(subset(det, block[:5]))
     assert (five.accepted, five.reason, five.detail, five.quality) == (False, "too few corners", "5 corners, need 6", 0.0)
     assert selector(min_corners=8).gate(subset(det, block)).detail == "6 corners, need 8"
-    empty = sel.gate(Detection.empty())
-    assert empty.reason == "no board" and empty.detail == "0 markers"
+    empty = consistent(sel.gate(Detection.empty()))
+    assert (empty.reason, empty.detail, empty.quality) == ("no board", "0 markers", 0.0)
 
 
 def test_collinear_means_one_row_one_column_or_a_thin_sliver() -> None:
@@ -89,7 +97,9 @@ def test_collinear_means_one_row_one_column_or_a_thin_sliver() -> None:
     spread = corner_spread(two_rows)
     assert spread == pytest.approx(0.5 / np.sqrt((per_row**2 - 1) / 12), rel=1e-3)
     sel = selector()
-    assert sel.gate(two_rows).reason == "collinear" and sel.gate(two_rows).detail == f"spread {spread:.2f}"
+    line = consistent(sel.gate(two_rows))
+    assert (line.reason, line.detail, line.quality) == ("collinear", f"spread {spread:.2f}", 0.0)
+    assert consistent(sel.gate(subset(det, column))).reason == "collinear"  # one column: no area whatever the spread
     assert selector(min_spread=spread - 0.01).gate(two_rows) is None
     three_rows = subset(det, list(range(3 * per_row)))
     assert corner_spread(three_rows) > 0.25 and sel.gate(three_rows) is None
@@ -247,18 +257,18 @@ def test_without_new_coverage_a_frame_must_cut_the_error() -> None:
     sel.commit(0, det, pose, sel.coverage.contribution(det, pose))
     again, again_pose = seen((640, 360), 0.9, tilt_x=9.0)  # not a twin (9 deg)
     kw = {"motion_px_s": None, "blur_px": 1.0}
-    d = sel.decide(1, again, again_pose, **kw)[0]
+    d = consistent(sel.decide(1, again, again_pose, **kw)[0])
     assert d.reason == "adds nothing" and 0 < d.coverage_gain < 1.0
     assert d.detail.endswith("expected error -0.0% (needs 75.0%)")  # 1.5 / (1 kept + 1)
-    cut = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.1, uncertainty_needed=0.1, **kw)[0]
+    cut = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.1, uncertainty_needed=0.1, **kw)[0])
     assert cut.accepted and cut.detail == "cuts the expected error by 10%" and cut.uncertainty_gain == 0.1
-    short = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.099, uncertainty_needed=0.1, **kw)[0]
+    short = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.099, uncertainty_needed=0.1, **kw)[0])
     assert short.reason == "adds nothing" and short.uncertainty_gain == 0.099
     for k in range(100):
         sel.accepted.append(view(x=5000.0 + 1000 * k))
-    floor = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.019, **kw)[0]
+    floor = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.019, **kw)[0])
     assert floor.reason == "adds nothing" and "needs 2.0%" in floor.detail  # never below 2%
-    assert sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.02, **kw)[0].accepted
+    assert consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.02, **kw)[0]).accepted
 
 
 def test_keep_all_usable_and_the_frame_limit() -> None:
