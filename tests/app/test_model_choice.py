@@ -263,3 +263,32 @@ def test_without_any_solve_the_field_of_view_is_taken_as_an_ordinary_lens(monkey
     assert candidate_order(hfov) == ["pinhole", "rational"]  # the simplest candidates, no fisheye
     fake_solves(monkeypatch, {"pinhole": (0.3, float("inf")), "fisheye": (0.3, float("nan"))})
     assert estimate_hfov_deg([], SIZE) == hfov
+
+
+def _view_rms_ratio(views, bad: int) -> float:
+    from calibcoach.app.solve.calibrate import reprojection_residuals, solve
+
+    raw = solve(views, SIZE, "pinhole")
+    rms = [np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in reprojection_residuals(raw.camera, views, raw.rvecs, raw.tvecs)]
+    return float(rms[bad] / np.median(rms)), float(rms[bad])
+
+
+@pytest.mark.parametrize(("noise", "bad_noise", "dropped"), [
+    (0.2, 3.0, True),  # 14x the median view: a misdetection
+    (0.2, 0.7, True),  # ~3.5x
+    (0.2, 0.4, False),  # ~2.5x: within the scatter of views
+    (0.02, 0.2, False),  # 10x the median, but under half a pixel: never a reason to drop a view
+])
+def test_a_half_is_solved_without_its_clearly_inconsistent_view(noise: float, bad_noise: float, dropped: bool) -> None:
+    from calibcoach.app.solve.calibrate import solve
+    from calibcoach.app.solve.model_choice import _solve_half
+
+    views = views_of("webcam720", 0, n=8, noise_px=noise)
+    rng = np.random.default_rng(1)
+    views[2] = replace(views[2], image_points_px=views[2].image_points_px + rng.normal(0, bad_noise, (70, 2)))
+    ratio, rms = _view_rms_ratio(views, 2)
+    assert (ratio > 3.0 and rms > 0.5) is dropped, (ratio, rms)
+    expected = solve(views[:2] + views[3:] if dropped else views, SIZE, "pinhole").camera
+    got = _solve_half(views, SIZE, "pinhole")
+    np.testing.assert_allclose(got.camera_matrix, expected.camera_matrix, atol=0.02)
+    np.testing.assert_allclose(got.dist_coeffs, expected.dist_coeffs, atol=1e-4)
