@@ -32,7 +32,7 @@ TARGETS = {  # module -> its fast unit tests
     "app/solve/weighted.py": ["tests/app/test_robust.py", "tests/app/test_robust_limits.py",
                               "tests/app/test_uncertainty.py::test_weighted_refinement_discounts_noisy_views"],
     "app/solve/verdict.py": ["tests/app/test_verdict.py"],
-    "app/solve/model_choice.py": ["tests/app/test_model_choice.py"],
+    "app/solve/model_choice.py": ["tests/app/test_model_choice_rule.py", "tests/app/test_model_choice.py"],  # fast tests first (-x)
     "coverage/select.py": ["tests/coverage/test_select_unit.py", "tests/coverage/test_coverage_selection.py"],
 }
 _SWAP = {
