@@ -29,7 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 TARGETS = {  # module -> its fast unit tests
     "app/solve/robust.py": ["tests/app/test_robust.py", "tests/app/test_robust_limits.py"],
-    "app/solve/weighted.py": ["tests/app/test_robust.py", "tests/app/test_robust_limits.py",
+    "app/solve/weighted.py": ["tests/app/test_weighted.py", "tests/app/test_robust.py", "tests/app/test_robust_limits.py",
                               "tests/app/test_uncertainty.py::test_weighted_refinement_discounts_noisy_views"],
     "app/solve/verdict.py": ["tests/app/test_verdict.py"],
     "app/solve/model_choice.py": ["tests/app/test_model_choice_rule.py", "tests/app/test_model_choice.py"],  # fast tests first (-x)
