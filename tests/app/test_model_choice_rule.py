@@ -8,13 +8,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_model_choice import views_of
+from test_model_choice import CASES, views_of
 
 import calibcoach.app.solve.model_choice as mc
 from calibcoach.app.solve.model_choice import candidate_order, choose_model, estimate_hfov_deg
 from calibcoach.drivers.errors import CalibrationError
 
-from _synthetic import SIZE
+from _synthetic import SIZE, observe, random_poses
 
 # --- the decision rule, on stand-in solves with known held-out errors ------------------------------
 # The solves in test_model_choice.py are real; these replace them (module attributes, looked up at call time) so the
@@ -158,17 +158,19 @@ def _view_rms_ratio(views, bad: int) -> float:
     return float(rms[bad] / np.median(rms)), float(rms[bad])
 
 
-@pytest.mark.parametrize(("noise", "bad_noise", "dropped"), [
-    (0.2, 3.0, True),  # 14x the median view: a misdetection
-    (0.2, 0.7, True),  # ~3.5x
-    (0.2, 0.4, False),  # ~2.5x: within the scatter of views
-    (0.02, 0.2, False),  # 10x the median, but under half a pixel: never a reason to drop a view
+@pytest.mark.parametrize(("noise", "bad_noise", "dropped", "n"), [
+    (0.2, 3.0, True, 8),  # 14x the median view: a misdetection
+    (0.2, 0.7, True, 8),  # ~3.5x
+    (0.2, 0.4, False, 8),  # ~2.5x: within the scatter of views
+    (0.02, 0.2, False, 8),  # 10x the median, but under half a pixel: never a reason to drop a view
+    (0.2, 3.0, True, 4),  # the three views left are enough to solve again
 ])
-def test_a_half_is_solved_without_its_clearly_inconsistent_view(noise: float, bad_noise: float, dropped: bool) -> None:
+def test_a_half_is_solved_without_its_clearly_inconsistent_view(noise: float, bad_noise: float, dropped: bool,
+                                                                n: int) -> None:
     from calibcoach.app.solve.calibrate import solve
     from calibcoach.app.solve.model_choice import _solve_half
 
-    views = views_of("webcam720", 0, n=8, noise_px=noise)
+    views = views_of("webcam720", 0, n=n, noise_px=noise)
     rng = np.random.default_rng(1)
     views[2] = replace(views[2], image_points_px=views[2].image_points_px + rng.normal(0, bad_noise, (70, 2)))
     ratio, rms = _view_rms_ratio(views, 2)
@@ -177,3 +179,14 @@ def test_a_half_is_solved_without_its_clearly_inconsistent_view(noise: float, ba
     got = _solve_half(views, SIZE, "pinhole")
     np.testing.assert_allclose(got.camera_matrix, expected.camera_matrix, atol=0.02)
     np.testing.assert_allclose(got.dist_coeffs, expected.dist_coeffs, atol=1e-4)
+
+
+@pytest.mark.parametrize("lens", ["webcam720", "fisheye150"])
+def test_the_held_out_pose_refinement_converges_from_a_rough_start(lens: str) -> None:
+    """Gauss-Newton on the pose alone, from 0.05 rad and 10% off, lands on the true pose of a noise-free view."""
+    camera, placement, _, _ = CASES[lens]
+    (r, t), = random_poses(camera, 1, np.random.default_rng(7), **placement)
+    view = observe(camera, [(r, t)])[0]
+    rvec, tvec = mc._refine_pose(camera, view, r + 0.05, t * 1.1)
+    np.testing.assert_allclose(rvec, r, atol=1e-8)
+    np.testing.assert_allclose(tvec, t, atol=1e-8)
