@@ -6,7 +6,7 @@ mutant changes one operator or constant of one module in place (comparison, arit
 not, unary minus, a number n -> n + 1, True <-> False; strings, f-strings and docstrings are left
 alone), runs only that module's fast unit tests (`pytest -x`), and restores the file.
 
-    .venv/bin/python bench/mutation.py                 # all targets, ~20 min on one core
+    .venv/bin/python bench/mutation.py                 # all targets, ~25 min on one core
     .venv/bin/python bench/mutation.py verdict select  # targets whose path contains a word
     .venv/bin/python bench/mutation.py --list          # the mutants, without running anything
 
