@@ -6,7 +6,7 @@ mutant changes one operator or constant of one module in place (comparison, arit
 not, unary minus, a number n -> n + 1, True <-> False; strings, f-strings and docstrings are left
 alone), runs only that module's fast unit tests (`pytest -x`), and restores the file.
 
-    .venv/bin/python bench/mutation.py                 # all targets, ~20 min on one core
+    .venv/bin/python bench/mutation.py                 # all targets, ~25 min on one core
     .venv/bin/python bench/mutation.py verdict select  # targets whose path contains a word
     .venv/bin/python bench/mutation.py --list          # the mutants, without running anything
 
@@ -29,10 +29,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 TARGETS = {  # module -> its fast unit tests
     "app/solve/robust.py": ["tests/app/test_robust.py", "tests/app/test_robust_limits.py"],
-    "app/solve/weighted.py": ["tests/app/test_robust.py", "tests/app/test_robust_limits.py",
+    "app/solve/weighted.py": ["tests/app/test_weighted.py", "tests/app/test_robust.py", "tests/app/test_robust_limits.py",
                               "tests/app/test_uncertainty.py::test_weighted_refinement_discounts_noisy_views"],
     "app/solve/verdict.py": ["tests/app/test_verdict.py"],
-    "app/solve/model_choice.py": ["tests/app/test_model_choice.py"],
+    "app/solve/model_choice.py": ["tests/app/test_model_choice_rule.py", "tests/app/test_model_choice.py"],  # fast tests first (-x)
     "coverage/select.py": ["tests/coverage/test_select_unit.py", "tests/coverage/test_coverage_selection.py"],
 }
 _SWAP = {

@@ -10,14 +10,21 @@ import pytest
 from test_robust import CAMERA, session, swapped_rows  # its synthetic sessions (tests/app is on pythonpath)
 
 from calibcoach.app.solve import uncertainty as U
+from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.result import View
 from calibcoach.app.solve.robust import (
+    _refit_frame_rms_px,
     build_calibration,
     look_alike_correlation,
     noise_sigma_px,
     robust_calibrate,
+    robust_frame_rms_px,
+    robust_sigma_px,
 )
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.sim import LENSES
 
-from _synthetic import SIZE, observe, random_poses, stacked
+from _synthetic import BOARD, IDS, SIZE, observe, random_poses, stacked
 
 
 def test_a_one_pixel_outlier_in_a_low_noise_session_is_dropped_but_not_below_the_floor() -> None:
@@ -101,8 +108,6 @@ def test_look_alike_correlation_of_small_or_empty_residuals() -> None:
 
 def test_the_trimmed_frame_rms() -> None:
     """The frame statistic: a gaussian frame's RMS, unmoved by its worst tenth of corners, moved by more."""
-    from calibcoach.app.solve.robust import robust_frame_rms_px
-
     rng = np.random.default_rng(26)
     frames = [rng.normal(0, 0.3, (70, 2)) for _ in range(2000)]
     ratio = np.array([robust_frame_rms_px(r) / np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in frames])
@@ -134,3 +139,79 @@ def test_bad_corners_go_as_corners_up_to_a_tenth_of_the_frame(bad: int, frame_dr
         assert cal.dropped_frames == ()
         assert {(c.frame_index, c.corner_id) for c in cal.dropped_corners} == {(5, int(i)) for i in idx}
         assert cal.corner_count == 10 * 70 - bad
+
+
+def test_a_view_of_six_clean_corners_stays() -> None:
+    """Six corners are enough (the selector's minimum too): when another view's outlier corner goes,
+    a clean six-corner view is kept whole, not dropped as "too few left"."""
+    rng, _poses, views, _mask = session(3, 0.2, n=4)
+    keep = np.isin(views[1].ids, [0, 1, 2, 7, 8, 9])  # two rows of three
+    views[1] = replace(views[1], ids=views[1].ids[keep], image_points_px=views[1].image_points_px[keep],
+                       object_points_m=views[1].object_points_m[keep])
+    px = views[0].image_points_px.copy()
+    px[20] += [6.0, 0.0]
+    views[0] = replace(views[0], image_points_px=px)
+    cal = robust_calibrate(views, SIZE, "pinhole")
+    assert cal.dropped_frames == ()
+    assert [(c.frame_index, c.corner_id) for c in cal.dropped_corners] == [(0, 20)]
+    assert [len(v.ids) for v in cal.views] == [69, 6, 70, 70]
+
+
+def test_three_views_still_get_the_weighted_refinement() -> None:
+    """The smallest solve (three views) weights a noisier view down like any other."""
+    rng, _poses, views, _mask = session(30, 0.2, n=3)
+    views[1] = replace(views[1], image_points_px=views[1].image_points_px + rng.normal(0, 0.5, (70, 2)))
+    cal = robust_calibrate(views, SIZE, "pinhole")
+    weights = [v.information_weight for v in cal.views]
+    assert weights[0] == weights[2] == 1.0 and 0.1 < weights[1] < 0.5  # (0.2 / 0.54)^2 ~ 0.15-0.2
+
+
+@pytest.mark.parametrize(("offset_px", "dropped"), [(0.88, True), (0.85, False)])
+def test_the_corner_limit_is_the_chi_square_99_99_point(offset_px: float, dropped: bool) -> None:
+    """A corner whose residual in the first solve is 4.35 robust sigmas out goes (sqrt(18.42) = 4.29:
+    1 clean corner in 10,000 beyond it); one at 4.2 sigmas stays."""
+    rng, poses, views, _mask = session(41, 0.2, n=10)
+    px = views[3].image_points_px.copy()
+    px[33] = CAMERA.project(BOARD[33:34], *poses[3])[0] + [offset_px, 0.0]
+    views[3] = replace(views[3], image_points_px=px)
+    raw = solve(views, SIZE, "pinhole")
+    res = reprojection_residuals(raw.camera, views, raw.rvecs, raw.tvecs)
+    sigmas = float(np.linalg.norm(res[3][33])) / robust_sigma_px(res)
+    assert (4.30 < sigmas < 4.40) if dropped else (4.15 < sigmas < 4.28), sigmas
+    cal = robust_calibrate(views, SIZE, "pinhole")
+    assert [(c.frame_index, c.corner_id) for c in cal.dropped_corners] == ([(3, 33)] if dropped else [])
+
+
+def test_a_suspect_frame_is_judged_by_the_pose_of_its_best_corners() -> None:
+    """7 of 70 corners 10 px off pull the frame's pose: its trimmed RMS at that pose is 2x the noise,
+    re-fitted to its best 63 corners it is the noise's. Under 10 corners none is left out: no re-fit."""
+    rng = np.random.default_rng(40)
+    view = observe(CAMERA, random_poses(CAMERA, 1, rng, region=(0.3, 0.7), distance_m=(0.5, 0.7)), rng, noise_px=0.2)[0]
+    px = view.image_points_px.copy()
+    angles = rng.uniform(0, 2 * np.pi, 7)
+    px[rng.choice(70, 7, replace=False)] += 10.0 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    view = replace(view, image_points_px=px)
+    res = view.image_points_px - CAMERA.project(view.object_points_m, *pose_for_view(CAMERA, view))
+    assert robust_frame_rms_px(res) > 0.5  # 2x the noise
+    assert _refit_frame_rms_px(CAMERA, view, res) == pytest.approx(0.2 * np.sqrt(2), rel=0.15)
+    nine = replace(view, ids=view.ids[:9], image_points_px=px[:9], object_points_m=view.object_points_m[:9])
+    assert _refit_frame_rms_px(CAMERA, nine, res[:9]) == robust_frame_rms_px(res[:9])
+
+
+@pytest.mark.parametrize(("good", "survives"), [(4, True), (3, False)])
+def test_an_unposable_fisheye_view_is_left_out_only_from_five_frames(good: int, survives: bool) -> None:
+    """Leaving a frame out to let the fisheye solve start needs four frames to remain."""
+    camera = LENSES["fisheye150"]
+    rng = np.random.default_rng(0)
+    views = observe(camera, random_poses(camera, good, rng, region=(0.05, 0.95), distance_m=(0.25, 0.5), tilt_deg=40,
+                                         max_off_axis_deg=80), rng)
+    r, t = random_poses(camera, 1, np.random.default_rng(5), region=(0.3, 0.7), distance_m=(0.3, 0.4), tilt_deg=20,
+                        max_off_axis_deg=80)[0]
+    row = np.arange(6)  # one board row: six collinear corners, no homography
+    line = View(99, "", IDS[row], camera.project(BOARD[row], r, t), BOARD[row])
+    if survives:
+        cal = robust_calibrate([*views, line], camera.image_size, "fisheye")
+        assert [d.frame_index for d in cal.dropped_frames] == [99] and len(cal.views) == good
+    else:
+        with pytest.raises(CalibrationError, match="fisheye"):
+            robust_calibrate([*views, line], camera.image_size, "fisheye")

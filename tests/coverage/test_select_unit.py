@@ -21,6 +21,7 @@ from calibcoach.coverage.select import (
     FrameSelector,
     SelectorSettings,
     accepted_view,
+    board_motion_px,
     corner_spread,
     look_alike,
     look_alike_groups,
@@ -54,10 +55,26 @@ def subset(det: Detection, ids) -> Detection:
     return Detection(det.corners_px[keep], det.ids[keep], det.object_points_m[keep], det.marker_ids)
 
 
+def consistent(d):
+    """A decision is accepted exactly when its reason says so (a rejected frame never reaches the solve),
+    and a kept frame is of full quality (the final solve takes only frames of quality 1)."""
+    assert d.accepted is (d.reason == "accepted"), d
+    assert not d.accepted or d.quality == 1.0, d
+    return d
+
+
+def unmeasured(d):
+    """A frame turned away before the diversity test: no coverage or error cut was computed for it."""
+    assert (d.coverage_gain, d.uncertainty_gain) == (0.0, 0.0), d
+    return d
+
+
 def decide(sel, det, pose, **kw):
     kw.setdefault("motion_px_s", None)
     kw.setdefault("blur_px", 1.0)
-    return sel.decide(0, det, pose, **kw)[0]
+    d, contribution = sel.decide(0, det, pose, **kw)
+    assert (contribution is not None) is d.accepted  # only a kept frame comes with its coverage to commit
+    return consistent(d)
 
 
 # --- gates 1-2 ----------------------------------------------------------------------------------
@@ -68,11 +85,11 @@ def test_six_corners_are_enough_and_five_are_not() -> None:
     det, _ = seen()
     block = [0, 1, 2, 7, 8, 9]  # two rows of three: a real area
     assert sel.gate(subset(det, block)) is None
-    five = sel.gate(subset(det, block[:5]))
+    five = unmeasured(sel.gate(subset(det, block[:5])))
     assert (five.accepted, five.reason, five.detail, five.quality) == (False, "too few corners", "5 corners, need 6", 0.0)
     assert selector(min_corners=8).gate(subset(det, block)).detail == "6 corners, need 8"
-    empty = sel.gate(Detection.empty())
-    assert empty.reason == "no board" and empty.detail == "0 markers"
+    empty = unmeasured(consistent(sel.gate(Detection.empty())))
+    assert (empty.reason, empty.detail, empty.quality) == ("no board", "0 markers", 0.0)
 
 
 def test_collinear_means_one_row_one_column_or_a_thin_sliver() -> None:
@@ -89,11 +106,15 @@ def test_collinear_means_one_row_one_column_or_a_thin_sliver() -> None:
     spread = corner_spread(two_rows)
     assert spread == pytest.approx(0.5 / np.sqrt((per_row**2 - 1) / 12), rel=1e-3)
     sel = selector()
-    assert sel.gate(two_rows).reason == "collinear" and sel.gate(two_rows).detail == f"spread {spread:.2f}"
+    line = unmeasured(consistent(sel.gate(two_rows)))
+    assert (line.reason, line.detail, line.quality) == ("collinear", f"spread {spread:.2f}", 0.0)
+    assert consistent(sel.gate(subset(det, column))).reason == "collinear"  # one column: no area whatever the spread
     assert selector(min_spread=spread - 0.01).gate(two_rows) is None
+    assert selector(min_spread=spread).gate(two_rows) is None  # "at least": the limit itself passes
     three_rows = subset(det, list(range(3 * per_row)))
     assert corner_spread(three_rows) > 0.25 and sel.gate(three_rows) is None
     assert corner_spread(subset(det, [0, 1])) == 0.0
+    assert corner_spread(subset(det, [0, 1, per_row])) == pytest.approx(np.sqrt(1 / 3))  # three corners: an L has an area
 
 
 # --- stillness and sharpness --------------------------------------------------------------------
@@ -103,13 +124,13 @@ def test_blur_above_the_absolute_limit_is_useless() -> None:
     det, pose = seen()
     sel = selector()
     assert decide(sel, det, pose, blur_px=3.0).accepted
-    d = decide(sel, det, pose, blur_px=3.01)
+    d = unmeasured(decide(sel, det, pose, blur_px=3.01))
     assert (d.reason, d.detail, d.quality) == ("blurred", "edge blur 3.0 px, limit 3.0", 0.0)
 
 
 def test_a_board_that_just_came_into_view_is_moving() -> None:
     det, pose = seen()
-    d = decide(selector(), det, pose, just_appeared=True)
+    d = unmeasured(decide(selector(), det, pose, just_appeared=True))
     assert (d.accepted, d.reason, d.detail, d.quality) == (False, "moving", "board just came into view", 0.25)
 
 
@@ -122,6 +143,7 @@ def test_transit_speed_is_a_veto_scaled_with_the_width(width: int) -> None:
         sel._blurs.append(1.0)
     still = EdgeBlur(1.0, 1.0)
     assert decide(sel, det, pose, motion_px_s=limit - 0.5, edges=still).reason != "moving"
+    assert decide(sel, det, pose, motion_px_s=limit * 0.9995, edges=still).reason != "moving"  # exactly proportional
     d = decide(sel, det, pose, motion_px_s=limit + 0.5, edges=still)
     assert (d.reason, d.quality) == ("moving", 0.0)
     assert d.detail == f"{limit + 0.5:.0f} px/s: in transit (limit {limit:.0f})"
@@ -170,6 +192,7 @@ def test_a_diagonal_smear_needs_the_cameras_own_sharpness_and_a_moving_board() -
     assert wide.diagonal_smear_px(0.8) == pytest.approx(np.sqrt(24 * 0.36))
     d = decide(sel, det, pose, motion_px_s=30.0, edges=wide)
     assert d.reason == "moving" and d.detail == "smeared 2.9 px along a board diagonal, limit 1.5 (30 px/s)"
+    assert d.quality == 0.0 and not d.accepted  # smeared: never in the final solve
     assert decide(sel, det, pose, motion_px_s=20.0, edges=wide).accepted  # a still board: soft, not smeared
     slight = EdgeBlur(0.87, 0.87)  # 1.7 px by the formula, but only 9% wider: within the measure's scatter
     assert slight.diagonal_smear_px(0.8) > 1.5 and decide(sel, det, pose, motion_px_s=30.0, edges=slight).accepted
@@ -226,6 +249,13 @@ def test_look_alike_limits(change: dict, alike: bool) -> None:
         assert look_alike(view(**change), view(), settings, DIAG) is alike
 
 
+def test_look_alike_compares_tilt_differences_whatever_the_tilts() -> None:
+    s = SelectorSettings()
+    assert look_alike(view(tx=20.0, ty=-20.0), view(tx=25.0, ty=-15.0), s, DIAG)  # both tilted alike
+    assert not look_alike(view(tx=-4.5, ty=0.0), view(tx=4.5, ty=0.0), s, DIAG)  # tilted opposite ways: 9 deg apart
+    assert not look_alike(view(tx=0.0, ty=4.5), view(tx=0.0, ty=-4.5), s, DIAG)
+
+
 def test_look_alike_groups_are_transitive_in_order() -> None:
     s = SelectorSettings()
     step = 0.04 * DIAG  # each alike its neighbour, the ends not alike each other
@@ -247,18 +277,27 @@ def test_without_new_coverage_a_frame_must_cut_the_error() -> None:
     sel.commit(0, det, pose, sel.coverage.contribution(det, pose))
     again, again_pose = seen((640, 360), 0.9, tilt_x=9.0)  # not a twin (9 deg)
     kw = {"motion_px_s": None, "blur_px": 1.0}
-    d = sel.decide(1, again, again_pose, **kw)[0]
+    d = consistent(sel.decide(1, again, again_pose, **kw)[0])
     assert d.reason == "adds nothing" and 0 < d.coverage_gain < 1.0
     assert d.detail.endswith("expected error -0.0% (needs 75.0%)")  # 1.5 / (1 kept + 1)
-    cut = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.1, uncertainty_needed=0.1, **kw)[0]
+    cut = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.1, uncertainty_needed=0.1, **kw)[0])
     assert cut.accepted and cut.detail == "cuts the expected error by 10%" and cut.uncertainty_gain == 0.1
-    short = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.099, uncertainty_needed=0.1, **kw)[0]
+    short = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.099, uncertainty_needed=0.1, **kw)[0])
     assert short.reason == "adds nothing" and short.uncertainty_gain == 0.099
     for k in range(100):
         sel.accepted.append(view(x=5000.0 + 1000 * k))
-    floor = sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.019, **kw)[0]
+    floor = consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.019, **kw)[0])
     assert floor.reason == "adds nothing" and "needs 2.0%" in floor.detail  # never below 2%
-    assert sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.02, **kw)[0].accepted
+    assert consistent(sel.decide(1, again, again_pose, uncertainty_gain=lambda: 0.02, **kw)[0]).accepted
+
+
+def test_a_frame_kept_without_a_pose_is_recorded_at_its_corner_centroid() -> None:
+    sel = selector()
+    det, pose = seen((500, 300), 0.8)
+    sel.commit(4, det, None, sel.coverage.contribution(det, None))
+    kept = sel.accepted[-1]
+    np.testing.assert_allclose(kept.centre_px, det.corners_px.astype(np.float64).mean(axis=0))
+    assert (kept.frame_index, kept.footprint, kept.tilt_x_deg, kept.tilt_y_deg) == (4, 0.0, 0.0, 0.0)  # no pose: nothing known
 
 
 def test_keep_all_usable_and_the_frame_limit() -> None:
@@ -269,10 +308,29 @@ def test_keep_all_usable_and_the_frame_limit() -> None:
         assert d.accepted and d.detail.startswith("usable photo")  # even a twin
         sel.commit(k, det, pose, c)
     d = decide(sel, det, pose)
-    assert (d.reason, d.detail) == ("frame limit", "2 frames kept already")
+    assert (d.reason, d.detail, d.quality) == ("frame limit", "2 frames kept already", 1.0)  # usable, just not needed
+    unmeasured(d)
     sel.record(d)
     sel.record(d)
     assert sel.counts["frame limit"] == 2 and sel.counts["accepted"] == 0
+
+
+def test_board_motion_needs_four_shared_corners() -> None:
+    det, _ = seen()
+    moved = Detection(det.corners_px + np.float32([3.0, 4.0]), det.ids, det.object_points_m, det.marker_ids)
+    assert board_motion_px(subset(det, [0, 1, 2, 3]), moved) == pytest.approx(5.0)
+    assert board_motion_px(subset(det, [0, 1, 2]), moved) is None  # three: too few to tell a move from a misread
+    assert board_motion_px(det, Detection.empty()) is None and board_motion_px(Detection.empty(), det) is None
+
+
+def test_settings_decisions_and_views_are_immutable_values() -> None:
+    import dataclasses
+
+    det, pose = seen()
+    for value, field in ((SelectorSettings(), "max_frames"), (decide(selector(), det, pose), "accepted"),
+                         (accepted_view(0, det, pose), "footprint")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(value, field, 0)
 
 
 # --- the edge-blur measure ----------------------------------------------------------------------
