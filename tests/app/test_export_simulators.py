@@ -204,3 +204,53 @@ def test_blender_portrait_and_fy_above_fx(tmp_path: Path) -> None:
     values = script_constants(script)
     np.testing.assert_allclose(blender_K(values), ideal_camera(cam).camera_matrix, atol=1e-9)
     assert values["PIXEL_ASPECT_X"] > 1
+
+
+# --- read by the consumers' own parsers: Pixar's USD (usd-core) and MuJoCo's compiler -------------------
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_usd_itself_reads_the_isaac_camera_and_lens(tmp_path: Path, model: str) -> None:
+    pytest.importorskip("pxr", reason="usd-core (Pixar's USD) is in the test extra: pip install -e '.[test]'")
+    from pxr import Usd, UsdGeom
+    cam = camera(model)
+    usda, _ = write_isaac(tmp_path, cam)
+    stage = Usd.Stage.Open(str(usda))
+    prim = stage.GetPrimAtPath("/calibcoach_camera")
+    assert prim.IsValid() and prim.GetTypeName() == "Camera"
+    token = "opencvFisheye" if model == "fisheye" else "opencvPinhole"
+    schema = "OmniLensDistortionOpenCvFisheyeAPI" if model == "fisheye" else "OmniLensDistortionOpenCvPinholeAPI"
+    assert schema in prim.GetMetadata("apiSchemas").GetAddedOrExplicitItems()
+    assert prim.GetAttribute("omni:lensdistortion:model").Get() == token
+
+    def lens(name: str) -> float:
+        return float(prim.GetAttribute(f"omni:lensdistortion:{token}:{name}").Get())
+
+    assert tuple(prim.GetAttribute(f"omni:lensdistortion:{token}:imageSize").Get()) == SIZE
+    names = ["k1", "k2", "k3", "k4"] if model == "fisheye" else ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:len(DIST[model])]
+    read = CameraModel(model, [[lens("fx"), 0, lens("cx")], [0, lens("fy"), lens("cy")], [0, 0, 1]],
+                       np.array([lens(n) for n in names]), SIZE)
+    pts = points_over_image(cam)
+    assert np.max(np.linalg.norm(read.project(pts) - cam.project(pts), axis=1)) < TOLERANCE_PX
+    gf = UsdGeom.Camera(prim).GetCamera()  # USD's own camera: focal length and apertures, same units
+    w, h = SIZE
+    assert gf.focalLength / gf.horizontalAperture * w == pytest.approx(cam.fx, rel=1e-6)
+    assert gf.focalLength / gf.verticalAperture * h == pytest.approx(cam.fy, rel=1e-6)
+    assert (w - 1) / 2 - gf.horizontalApertureOffset / gf.horizontalAperture * w == pytest.approx(cam.principal_point[0], abs=1e-3)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_mujoco_compiles_the_camera_to_the_ideal_intrinsics(tmp_path: Path, model: str) -> None:
+    mujoco = pytest.importorskip("mujoco", reason="mujoco is in the test extra: pip install -e '.[test]'")
+    cam = camera(model)
+    xml, _, _ = write_mujoco(tmp_path, cam)
+    text = xml.read_text()
+    element = text[text.index("<camera"):].strip()
+    compiled = mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{element}</worldbody></mujoco>")
+    res, sensor, intrinsic = compiled.cam_resolution[0], compiled.cam_sensorsize[0], compiled.cam_intrinsic[0]
+    assert tuple(res) == SIZE
+    # MuJoCo's frustum (engine_vis_visualize / getFrustum): focal length and principal offset in sensor units
+    fx, fy = intrinsic[0] / sensor[0] * res[0], intrinsic[1] / sensor[1] * res[1]
+    cx = (sensor[0] / 2 - intrinsic[2]) / sensor[0] * res[0] - 0.5  # OpenCV's pixel centres
+    cy = (sensor[1] / 2 + intrinsic[3]) / sensor[1] * res[1] - 0.5
+    np.testing.assert_allclose([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], ideal_camera(cam).camera_matrix, atol=2e-3)
