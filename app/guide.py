@@ -78,7 +78,8 @@ class Guide:
     def observe(self, timestamp_ns: int, pose: BoardPose | None, *, accepted: int) -> None:
         """One processed frame: the board's pose (None when not seen) and frames accepted so far."""
         self._accepted = accepted
-        held_since = self._stillness(timestamp_ns, pose)  # before any target change: a hold goes on across it
+        centre = self._centre_px(pose)  # once per frame, for the hold count and "at the target"
+        held_since = self._stillness(timestamp_ns, centre)  # before any target change: a hold goes on across it
         best = self.best
         shown = self._shown
         if best is None:
@@ -93,7 +94,7 @@ class Guide:
         key = shown.ranked.candidate.key
         if held_since is not None and held_since > shown.issued_ns:  # a try begun after the target came up
             self._holds += 1
-        if pose is not None and self._is_near(pose, shown.ranked):
+        if pose is not None and self._is_near(pose, centre, shown.ranked):
             self._near_since_ns = timestamp_ns if self._near_since_ns is None else self._near_since_ns
             if timestamp_ns - self._near_since_ns >= EXECUTED_S * 1e9:
                 self.failed.add(key)
@@ -106,10 +107,14 @@ class Guide:
             self._shown = None
             self.observe(timestamp_ns, None, accepted=accepted)  # show the next best at once
 
-    def _stillness(self, timestamp_ns: int, pose: BoardPose | None) -> int | None:
+    def _centre_px(self, pose: BoardPose | None) -> np.ndarray | None:
+        """Where the board's centre shows through the current intrinsics ((2,) px), or None."""
+        if pose is None or self._camera is None:
+            return None
+        return self._camera.project((pose_matrix(pose.rvec) @ self.board_centre_m + pose.tvec).reshape(1, 3))[0]
+
+    def _stillness(self, timestamp_ns: int, centre: np.ndarray | None) -> int | None:
         """When the board has just stayed put for EXECUTED_S: when that hold began (once per hold), else None."""
-        centre = None if pose is None or self._camera is None else self._camera.project(
-            (pose_matrix(pose.rvec) @ self.board_centre_m + pose.tvec).reshape(1, 3))[0]
         if centre is None or not np.all(np.isfinite(centre)):
             self._hold = None
             return None
@@ -123,12 +128,10 @@ class Guide:
         self._hold = (anchor, since, True)
         return since
 
-    def _is_near(self, pose: BoardPose, ranked: RankedPose) -> bool:
+    def _is_near(self, pose: BoardPose, centre_px: np.ndarray | None, ranked: RankedPose) -> bool:
         cand = ranked.candidate
-        if self._camera is None:
+        if centre_px is None:
             return False
-        centre_cam = pose_matrix(pose.rvec) @ self.board_centre_m + pose.tvec
-        centre_px = self._camera.project(centre_cam.reshape(1, 3))[0]
         diag = float(np.hypot(*self.image_size))
         return bool(
             np.all(np.isfinite(centre_px))

@@ -125,8 +125,7 @@ class CalibrationSession:
         self._recent: list[str] = []  # decisions of the last frames that showed a usable board
         self.look_alike_correlation = 0.0  # residual correlation of look-alike frames in the final solve
         self._done = False
-        self.accepting = True  # off once the focus drifted (app/focus_watch.py), until a matching lock resumes
-        self.focus_drift: str | None = None  # what moved, in words
+        self.focus_drift: str | None = None  # what moved, in words (app/focus_watch.py)
         # [start, end) frame indices taken at a drifted focus: left out of the final solve (end None: to the end)
         self.drifted_ranges: list[tuple[int, int | None]] = []
         self._refresh_lens()
@@ -175,7 +174,7 @@ class CalibrationSession:
         self._previous = (detection, frame.timestamp_ns)
         pose = self._pose(detection) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
-        if gated is None and (not self.accepting or self._drifted(frame.index)):
+        if gated is None and self._drifted(frame.index):
             gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
         if gated is None and self._done:
             gated = Decision(False, "frame limit", f"capture complete ({self.stop_reason})", quality=0.0)
@@ -349,14 +348,18 @@ class CalibrationSession:
 
     def stop_accepting(self, first_bad_index: int, detail: str) -> None:
         """The focus moved: accept nothing more, and leave frames from `first_bad_index` on out of the solve."""
-        self.accepting, self.focus_drift = False, detail
+        self.focus_drift = detail
         self.drifted_ranges.append((int(first_bad_index), None))
 
     def accept_again(self, *, from_index: int) -> None:
         """Focus is back at the locked value (a resumed capture): accept frames from `from_index` on."""
         if self.drifted_ranges and self.drifted_ranges[-1][1] is None:
             self.drifted_ranges[-1] = (self.drifted_ranges[-1][0], int(from_index))
-        self.accepting = True
+
+    @property
+    def accepting(self) -> bool:
+        """False from a focus drift on, until a resumed capture at the recorded lock accepts again."""
+        return not (self.drifted_ranges and self.drifted_ranges[-1][1] is None)
 
     def _drifted(self, frame_index: int) -> bool:
         return any(start <= frame_index and (end is None or frame_index < end) for start, end in self.drifted_ranges)

@@ -36,6 +36,13 @@ def camera_matrix(out: Path) -> np.ndarray:
     return np.array(json.loads((out / "calibration.json").read_text())["camera_matrix"])
 
 
+def processed_and_dropped(stderr: str) -> tuple[int, int]:
+    """The live command's closing line: frames processed, and dropped by the capture thread."""
+    found = re.search(r"processed (\d+) frames \(.*?(\d+) dropped", stderr)
+    assert found, stderr
+    return int(found[1]), int(found[2])
+
+
 def exit_code_for(out: Path) -> int:
     """What a run that wrote `out` must exit with: 0 for a trusted calibration, 3 for a refused one."""
     return 0 if json.loads((out / "calibration.json").read_text())["verdict"]["trusted"] else 3
@@ -53,8 +60,7 @@ def test_live_recording_replays_to_the_identical_calibration(recordings_dir: Pat
     # the exit code must say which grade it was, and the replay must reach the same one with the same numbers
     solved = (tmp_path / "live" / "calibration.json").exists()  # a very loaded machine may keep too few frames
     assert code == (exit_code_for(tmp_path / "live") if solved else CalibrationError.exit_code)
-    err = capsys.readouterr().err
-    processed, dropped = (int(n) for n in re.search(r"processed (\d+) frames \(.*?(\d+) dropped", err).groups())
+    processed, dropped = processed_and_dropped(capsys.readouterr().err)
     assert processed + dropped == 120 and processed == len(read_session(record).entries)
     assert main(["calibrate", str(record), "--out", str(tmp_path / "replay"), "--quiet"]) == code
     assert read_session(record).complete
@@ -207,8 +213,7 @@ def test_guidance_jsonl_writes_every_step_for_other_programs(recordings_dir: Pat
                  "--no-viewer", "--quiet", "--guidance-jsonl", str(steps_path)])
     assert code == 3  # a frontal capture is refused
     lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
-    processed, dropped = (int(n) for n in re.search(r"processed (\d+) frames \(.*?(\d+) dropped",
-                                                    capsys.readouterr().err).groups())
+    processed, dropped = processed_and_dropped(capsys.readouterr().err)
     # one step per decided frame, in order (a loaded machine drops some of the 20 frames: never decided)
     indices = [s["frame_index"] for s in lines]
     assert len(indices) == processed and processed + dropped == 20 and indices == sorted(set(indices))
