@@ -107,7 +107,7 @@ class Assistant:
             base = replace(base, model=model)
         self.session = CalibrationSession(self.board, (int(image_size[0]), int(image_size[1])), base)
         self._detector: CharucoBoardDetector | None = None
-        self._held: tuple[Frame, Detection] | None = None
+        self._held: tuple[Frame, Detection, bool] | None = None
         self._count = 0
         self.last_outcome: FrameOutcome | None = None
         self.watch = FocusWatch(locked_controls)
@@ -142,28 +142,29 @@ class Assistant:
             self._detector = CharucoBoardDetector(self.board)
         return self.feed_detected(frame, self._detector.detect(frame.grey()))
 
-    def feed_detected(self, frame: Frame, detection: Detection) -> Step:
+    def feed_detected(self, frame: Frame, detection: Detection, *, in_transit: bool = False) -> Step:
         """`feed` for a frame whose detection is already known (frame.index as the source numbers it).
 
+        `in_transit`: a replay's scan saw the board in transit (see `CalibrationSession.process`).
         Once the session is done, frames are still taken but decided as "frame limit"."""
         if self._detector is not None and self._detector.settled:
             self.session.board = self._detector.spec
         self._count = frame.index + 1
-        held, self._held = self._held, (frame, detection)
+        held, self._held = self._held, (frame, detection, in_transit)
         if held is None:
             return Step(-1, False, "waiting", "a step decides the frame before it (one frame of lookahead)",
                         self.session.guide.guidance(done=self.session.done), self._progress(), None)
         return self._decide(held, following=(detection, frame.timestamp_ns))
 
-    def _decide(self, item: tuple[Frame, Detection], *, following: tuple[Detection, int] | None) -> Step:
-        frame, detection = item
+    def _decide(self, item: tuple[Frame, Detection, bool], *, following: tuple[Detection, int] | None) -> Step:
+        frame, detection, in_transit = item
         while self._recorded_events and self._recorded_events[0].due(frame.index):  # as the live session did
             event = self._recorded_events.pop(0)
             if event.kind == RELOCK_EVENT:
                 self._relock(event)
             elif self.watch.event is None:
                 self._stop_accepting(event)
-        outcome = self.session.process(frame, detection, following=following)
+        outcome = self.session.process(frame, detection, following=following, in_transit=in_transit)
         event = self.watch.check(frame, outcome.blur_px, self.session.selector.accepted_blurs)
         if event is not None:
             self._stop_accepting(event)

@@ -181,9 +181,9 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
         else "stop rule met (coverage complete, uncertainty on target)" if stats.stopped_early
         else "end of source"
     )
-    passed = (f", passed over {stats.passed_over} that repeated their neighbours' view (--every-frame reads them)"
-              if stats.passed_over else "")
-    print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{passed}); "
+    tracked = (f", {stats.tracked} of them held boards tracked from the frame before (--every-frame detects each anew)"
+               if stats.tracked else "")
+    print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{tracked}); "
           f"kept {len(session.views)}; solving...", file=sys.stderr)
     with SolveStages(enabled=not args.quiet) as stages:
         result = session.finish(on_stage=stages)
@@ -191,7 +191,7 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
                              if n and reason != "accepted")
         added, reserve = session.budget_fill
         stages.say(f"calibcoach: rejected {rejected or 'nothing'}; the final solve also took {added} of {reserve} usable "
-                   "frames held in reserve (highest information first)")
+                   "frames held in reserve (poses of their own first, then repeats of every hold alike)")
         stages("outputs")
         written = write_session_outputs(
             args.out, result, source_info=info, command_line=argv, accept_partial=args.accept_partial,
@@ -215,9 +215,6 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
         if not args.accept_partial:
             print("no camera files (camera_matrix.npy, dist_coeffs.npy, calibration.yaml, camera_info.yaml) were written: "
                   "a refused calibration must not be loaded as a camera (--accept-partial writes them as *_untrusted)")
-        if stats.passed_over:
-            print(f"the folder was read sparsely ({stats.passed_over} frames passed over as repeats of their neighbours); "
-                  "a hurried capture may hold a few more usable frames: try again with --every-frame")
         return 3
     return 0
 

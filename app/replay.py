@@ -8,16 +8,15 @@ Replay stops reading as soon as the session's stop rule is met.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
-from calibcoach.app.assistant import Assistant
+from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
-from calibcoach.app.scan import SparseScan
+from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -35,61 +34,27 @@ class ReplayStats:
     interrupted: bool  # Ctrl-C: the session holds every frame accepted until then
     board: BoardSpec  # with legacy/inverted settled
     variant_found: str | None
-    passed_over: int = 0  # frames of a sparse scan never decoded: they repeated their neighbours' view
-
-
-class _ThreadDetectors:
-    """One CharucoBoardDetector per worker thread, all built from the settled board."""
-
-    def __init__(self, spec: BoardSpec) -> None:
-        self.spec = spec
-        self._local = threading.local()
-
-    def detect(self, frame: Frame) -> Detection:
-        detector = getattr(self._local, "detector", None)
-        if detector is None:
-            detector = self._local.detector = CharucoBoardDetector(self.spec)
-        return detector.detect(frame.grey())
+    tracked: int = 0  # frames whose held board was tracked from the frame before instead of detected anew
 
 
 def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
-                    settle: CharucoBoardDetector | None = None, scans_out: list[SparseScan] | None = None,
-                    every_frame: bool = False) -> Iterator[tuple[Frame, Detection]]:
-    """Yield (frame, detection) in source order, detecting ahead on `workers` threads.
+                    settle: CharucoBoardDetector | None = None, scans_out: list[HeldFrameScan] | None = None,
+                    every_frame: bool = False) -> Iterator[Seen]:
+    """Every frame of `source` in order with its detection, decoded and detected ahead on `workers` threads.
 
-    Sources with random access (image folders) are read by a `SparseScan` that passes over frames
-    repeating their neighbours' view, unless `every_frame`; the scan is appended to `scans_out` so
-    the caller can report how much was passed over.
+    A held board is tracked from the frame before rather than detected anew (`HeldFrameScan`,
+    app/scan.py) unless `every_frame`; the scan is appended to `scans_out` so the caller can
+    report how many frames were tracked.
     """
     first = settle or CharucoBoardDetector(board)
-    count = None if every_frame else source.frame_count_for_random_access
-    if count is not None:
-        loaded = _LoadedInOrder(source, count)
-        yield from _settling(loaded, first)
-        detectors = _ThreadDetectors(_settled_spec(first))
-        sparse = SparseScan(source, detectors.detect, start=loaded.next_index, workers=workers,
-                            board_corners_m=detectors.spec.corner_points_m())
-        if scans_out is not None:
-            scans_out.append(sparse)
-        yield from sparse
-        return
-    frames = iter(source)
-    yield from _settling(frames, first)
-    detectors = _ThreadDetectors(_settled_spec(first))
-    pending: deque[tuple[Frame, Future[Detection]]] = deque()
-    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="detect") as pool:
-        try:
-            for frame in frames:
-                pending.append((frame, pool.submit(detectors.detect, frame)))
-                if len(pending) >= 2 * workers + 2:
-                    f, fut = pending.popleft()
-                    yield f, fut.result()
-            while pending:
-                f, fut = pending.popleft()
-                yield f, fut.result()
-        finally:
-            for _f, fut in pending:
-                fut.cancel()
+    count = source.frame_count_for_random_access
+    frames: Iterator[Frame] = iter(_LoadedInOrder(source, count, workers)) if count is not None else iter(source)
+    yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
+    spec = _settled_spec(first)
+    scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=not every_frame)
+    if scans_out is not None:
+        scans_out.append(scan)
+    yield from scan
 
 
 def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterator[tuple[Frame, Detection]]:
@@ -101,20 +66,29 @@ def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterat
 
 
 class _LoadedInOrder:
-    """A random-access source's frames in order through `load`; `next_index` is where to go on."""
+    """A random-access source's frames in order, loaded (decoded) ahead on worker threads."""
 
-    def __init__(self, source: FrameSource, count: int) -> None:
-        self.source, self.count, self.next_index = source, count, 0
+    def __init__(self, source: FrameSource, count: int, workers: int) -> None:
+        self.source, self.count, self.workers = source, count, max(1, workers)
         source.skipped = []
 
     def __iter__(self) -> Iterator[Frame]:
-        while self.next_index < self.count:
-            item = self.source.load(self.next_index)
-            self.next_index += 1
-            if isinstance(item, SkippedFrame):
-                self.source.skipped.append(item)
-                continue
-            yield item
+        with ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="load") as pool:
+            pending: deque[Future] = deque()
+            next_index = 0
+            try:
+                while next_index < self.count or pending:
+                    while next_index < self.count and len(pending) < 4 * self.workers:
+                        pending.append(pool.submit(self.source.load, next_index))
+                        next_index += 1
+                    item = pending.popleft().result()
+                    if isinstance(item, SkippedFrame):
+                        self.source.skipped.append(item)
+                        continue
+                    yield item
+            finally:
+                for future in pending:
+                    future.cancel()
 
 
 def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
@@ -122,11 +96,6 @@ def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
     if detector.settled:
         return detector.spec
     return detector.spec.with_detected(legacy=bool(detector.spec.legacy), inverted=bool(detector.spec.inverted))
-
-
-def _with_end(stream: Iterator[tuple[Frame, Detection]]) -> Iterator[tuple[Frame, Detection] | None]:
-    yield from stream
-    yield None
 
 
 def run_replay(
@@ -140,9 +109,8 @@ def run_replay(
 ) -> tuple[CalibrationSession, ReplayStats]:
     """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
 
-    Image folders are read sparsely (see app/scan.py) unless `every_frame`. When the capture was
-    hurried (few usable frames, even counting the repeats of held boards that were passed over),
-    the frames passed over next to a usable board are read too, in a second pass.
+    Held boards are tracked rather than detected anew (app/scan.py) unless `every_frame`; the
+    tracked frames of a hold the session judged usable join its reserve for the final solve.
     """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
@@ -150,24 +118,35 @@ def run_replay(
     feed = _Feeder(settle, settings, on_outcome, locked_controls=info.locked_controls,
                    focus_events=focus_events(info.events))
     start = time.perf_counter()
-    scans: list[SparseScan] = []
-    stream = detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
-    feed.run(stream)
+    scans: list[HeldFrameScan] = []
+    feed.run(detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame))
     session = feed.session
-    if session is not None and scans and not (feed.stopped or feed.interrupted) and \
-            session.short_of_choice(unread_repeats=scans[0].held_repeats):
-        feed.run(scans[0].fill_in())
     if session is None:
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
-    passed_over = sum(scan.passed_over for scan in scans)
+    tracked = sum(scan.tracked for scan in scans)
     return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
-                                settle.variant_found, passed_over)
+                                settle.variant_found, tracked)
+
+
+@dataclass
+class _Hold:
+    """Frames tracked between two fully detected frames, waiting for the session's judgement of those."""
+
+    before: int  # the fully detected frame before them
+    after: int | None  # ... and after them (None until it comes)
+    repeats: list[tuple[Frame, Detection, float]]  # (frame, tracked detection, shift since the frame before, px)
+    shift_after: float = float("inf")  # shift from the last repeat to the frame after it, px
 
 
 class _Feeder:
-    """Feeds (frame, detection) streams to one `Assistant` (which looks one frame ahead, like live)."""
+    """Feeds scanned frames to one `Assistant` (which looks one frame ahead, like live).
+
+    Fully detected frames go through the session's judgement; tracked frames wait until a fully
+    detected frame of their hold (before or after them) has been judged usable, then join the
+    reserve if the board stood still on both sides of each (`_still_repeats`).
+    """
 
     def __init__(self, settle: CharucoBoardDetector, settings: SessionSettings,
                  on_outcome: Callable[[FrameOutcome, Frame], None] | None, *,
@@ -177,33 +156,95 @@ class _Feeder:
         self.assistant: Assistant | None = None
         self.read = 0
         self.stopped = self.interrupted = False
+        self._holds: deque[_Hold] = deque()
+        self._usable: dict[int, str] = {}  # fully detected frame -> "usable", "moving" or "unusable"
+        self._last_full: Seen | None = None
 
     @property
     def session(self) -> CalibrationSession | None:
         return None if self.assistant is None else self.assistant.session
 
-    def run(self, stream: Iterator[tuple[Frame, Detection]]) -> None:
+    def run(self, stream: Iterator[Seen]) -> None:
         """Feed `stream` until it ends or the stop rule is met."""
         try:
-            for item in _with_end(stream):
-                if item is None:
-                    step = None if self.assistant is None else self.assistant.flush()
-                else:
-                    self.read += 1
-                    frame, detection = item
-                    if self.assistant is None:
-                        self.assistant = Assistant(self.settle.spec, frame.image_size, settings=self.settings,
-                                                   locked_controls=self.locked_controls, focus_events=self.focus_events)
-                    step = self.assistant.feed_detected(frame, detection)
-                if step is not None and step.outcome is not None and step.frame is not None:
-                    if self.on_outcome is not None:
-                        self.on_outcome(step.outcome, step.frame)
-                    if step.progress.done:
-                        self.stopped = True
-                        break
+            for seen in stream:
+                self.read += 1
+                if seen.skipped and self.session is not None:
+                    self.session.add_held_repeats([(seen.frame, seen.detection)], usable=False)  # counted as seen
+                    continue
+                if seen.tracked_from is not None and self._last_full is not None and not seen.in_transit:
+                    self._track(seen)
+                    continue
+                self._close_hold(seen)
+                if self.assistant is None:
+                    self.assistant = Assistant(self.settle.spec, seen.frame.image_size, settings=self.settings,
+                                               locked_controls=self.locked_controls, focus_events=self.focus_events)
+                if self._judged(self.assistant.feed_detected(seen.frame, seen.detection, in_transit=seen.in_transit)):
+                    break
+            else:
+                if self.assistant is not None:
+                    self._judged(self.assistant.flush())
         except KeyboardInterrupt:
             self.interrupted = True  # stop reading; what was accepted is solved as usual
         finally:
             close = getattr(stream, "close", None)
             if close is not None:
                 close()
+            self._settle_holds(final=True)
+
+    def _track(self, seen: Seen) -> None:
+        assert self._last_full is not None
+        if not self._holds or self._holds[-1].after is not None:
+            self._holds.append(_Hold(self._last_full.frame.index, None, []))
+        self._holds[-1].repeats.append((seen.frame, seen.detection, float(seen.shift_px or 0.0)))
+
+    def _close_hold(self, seen: Seen) -> None:
+        """A fully detected frame ends the hold being tracked (if any)."""
+        if self._holds and self._holds[-1].after is None:
+            hold = self._holds[-1]
+            hold.after = seen.frame.index
+            hold.shift_after = board_shift_px(hold.repeats[-1][1], seen.detection)
+        self._last_full = seen
+
+    def _judged(self, step: Step | None) -> bool:
+        """Hand a decided frame on; True when the stop rule is met."""
+        if step is None or step.outcome is None or step.frame is None:
+            return False
+        decision = step.outcome.decision
+        self._usable[step.frame.index] = "usable" if decision.accepted or decision.quality >= 1.0 else \
+            "moving" if decision.reason == "moving" else "unusable"
+        self._settle_holds()
+        if self.on_outcome is not None:
+            self.on_outcome(step.outcome, step.frame)
+        if step.progress.done:
+            self.stopped = True
+            return True
+        return False
+
+    def _settle_holds(self, *, final: bool = False) -> None:
+        """Give the session every hold whose fully detected frames have been judged (at the end: all)."""
+        session = self.session
+        while self._holds and session is not None:
+            hold = self._holds[0]
+            judged = [self._usable.get(hold.before), None if hold.after is None else self._usable.get(hold.after)]
+            if not final and "usable" not in judged and None in judged:
+                return  # wait for the frame after the hold to be judged
+            self._holds.popleft()
+            # The hold's frames are as sharp as a usable frame of it; where its fully detected
+            # frames were rejected only for moving (a move's first or last frame), the tracked
+            # frames' own stillness decides.
+            usable = "usable" in judged or all(j in ("moving", None) for j in judged)
+            still = _still_repeats(hold, self.settings.selector.max_smear_px)
+            session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable)
+            session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
+
+
+def _still_repeats(hold: _Hold, max_move_px: float) -> list[bool]:
+    """Whether the board moved at most `max_move_px` into and out of each tracked frame.
+
+    A board that moved no more than that between frames cannot have smeared more within the
+    exposure (never longer than the frame interval): the selector's own smear limit.
+    """
+    into = [shift for _f, _d, shift in hold.repeats]
+    out_of = into[1:] + [hold.shift_after]
+    return [a <= max_move_px and b <= max_move_px for a, b in zip(into, out_of, strict=True)]

@@ -71,7 +71,6 @@ DIMINISHING_CUT = 0.03
 ACCEPT_SHARE = 0.5  # a frame without new coverage is kept when it cuts E by half what the best target would
 MIN_ACCEPT_CUT = 0.005  # and by at least 0.5%
 _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
-_CHOICE_PER_BUDGET_FRAME = 1.5  # usable frames per budget frame below which a replay reads more
 
 
 _LENS_MOVED_PX = 2.0
@@ -143,19 +142,25 @@ class CalibrationSession:
             return self.settings.error_target_px
         return None if self.noise_px is None else error_target_px(self.noise_px, self.image_size)
 
-    def short_of_choice(self, unread_repeats: int = 0) -> bool:
-        """Too few usable frames for the final solve to choose its budget from (a hurried capture).
+    def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool) -> None:
+        """Frames a replay tracked through a hold instead of detecting them (app/scan.py).
 
-        The final solve takes the accepted frames and fills the budget from the reserve by
-        information; with fewer than 1.5x the budget to choose from, any more usable frame helps.
-        `unread_repeats`: usable frames a sparse replay passed over as repeats of a held board,
-        which count as choice the capture offered.
+        `usable`: the session judged a fully detected frame of the same hold usable (sharp, enough
+        corners, not collinear), and each repeat was tracked as still on both sides. Such repeats
+        join the reserve, from which the final solve takes them to average each pose's corner noise
+        (`_fill_budget`); otherwise they are only counted as seen.
         """
-        usable = len(self.views) + len(self._reserve) + unread_repeats
-        return usable < _CHOICE_PER_BUDGET_FRAME * self.settings.selector.max_frames
+        for frame, detection in repeats:
+            self.frames_seen += 1
+            if usable and detection.corner_count >= self.settings.selector.min_corners and not self._drifted(frame.index):
+                self._reserve.append((_view_of(frame, detection), 1.0))
 
-    def process(self, frame: Frame, detection: Detection, *, following: tuple[Detection, int] | None = None) -> FrameOutcome:
+    def process(self, frame: Frame, detection: Detection, *, following: tuple[Detection, int] | None = None,
+                in_transit: bool = False) -> FrameOutcome:
         """Decide about one frame (already detected) and update coverage and the incremental solve.
+
+        `in_transit`: the replay's scan saw the scene change fast into and out of this frame of
+        footage (app/scan.py); such a frame is rejected as moving whatever its edges say.
 
         `following` is the next frame's (detection, timestamp_ns) when the caller can look one
         frame ahead (replay always can): the board must then be still on both sides of the frame,
@@ -174,6 +179,8 @@ class CalibrationSession:
         self._previous = (detection, frame.timestamp_ns)
         pose = self._pose(detection) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
+        if gated is None and in_transit:
+            gated = Decision(False, "moving", "in transit: the scene changed fast before and after it", quality=0.0)
         if gated is None and self._drifted(frame.index):
             gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
         if gated is None and self._done:
@@ -485,7 +492,7 @@ class CalibrationSession:
         look-alike of a kept or added frame) still help the final solve, greedily by information
         gain (`next_view.fill_from_reserve`).
         """
-        budget = self.settings.selector.max_frames - len(self.views)
+        budget = max(self.settings.solve_frames, self.settings.selector.max_frames) - len(self.views)
         if budget <= 0 or not self._reserve:
             return
         if self._information is None or len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:  # no solve yet

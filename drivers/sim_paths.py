@@ -400,8 +400,15 @@ class Trajectory:
         return poses
 
 
-def handheld_trajectory(camera: CameraModel, spec: BoardSpec, style: str, *, seconds: float, seed: int) -> Trajectory:
-    """The continuous path behind `handheld_path` (same arguments but fps); see its docstring."""
+def handheld_trajectory(camera: CameraModel, spec: BoardSpec, style: str, *, seconds: float, seed: int,
+                        tremor_scale: float = 1.0) -> Trajectory:
+    """The continuous path behind `handheld_path` (same arguments but fps); see its docstring.
+
+    `tremor_scale` multiplies the style's tremor and sway (4: a shaky hand), for benches that must
+    hold from a steady hand to a shaky one.
+    """
+    if tremor_scale < 0:
+        raise ValueError(f"tremor_scale must be >= 0, got {tremor_scale}")
     if style not in STYLES:
         raise ValueError(f"style must be one of {STYLES}, got {style!r}")
     if seconds <= 0:
@@ -410,7 +417,7 @@ def handheld_trajectory(camera: CameraModel, spec: BoardSpec, style: str, *, sec
     distances = {name: distance_for_height(camera, spec, share) for name, share in HEIGHT_SHARE.items()}
     keys = {"careful": _careful_keys, "sloppy": _sloppy_keys, "frontal": _frontal_keys}[style](
         camera, spec, rng, seconds, distances)
-    tremor = _Tremor(rng, translation_m=_TREMOR[style][0], rotation_deg=_TREMOR[style][1])
+    tremor = _Tremor(rng, translation_m=_TREMOR[style][0] * tremor_scale, rotation_deg=_TREMOR[style][1] * tremor_scale)
     return Trajectory(spec, keys, tremor)
 
 

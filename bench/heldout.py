@@ -1,0 +1,249 @@
+"""Accuracy across renders: calibcoach against the plain recipe, a ROS-style selector and mrcal.
+
+Every cell of bench/renders.py (lens, hand from steady to shaky, exposure drawn per render, PNG
+folder or MJPG video, normal or low light) is rendered with 5 seeds that no tuning has used, and
+each capture is calibrated five ways from the same footage:
+
+  plain      the method's recipe: every 30th frame (1 per second at 30 fps) with >= 6 corners into
+             calibrateCamera, with the model the recipe names for the lens's field of view;
+  ROS-style  a frame is kept when its (x, y, size, skew) differs from every kept one by 0.2 (L1);
+  mrcal      `mrcal-calibrate-cameras` on the detected corners of every still frame (smear in the
+             exposure under 0.5 px by the truth), the expert's reference (when python3-mrcal is there);
+  calibcoach `run_replay` + `finish` with the defaults, and with `every_frame`.
+
+Scored by the projection error against the lens truth over the region the capture's boards
+covered (every frame with >= 6 corners; the one rotation an extrinsic absorbs is fitted), reported
+as median and worst over the seeds, with how often calibcoach accepted. For PNG folders the replay
+time is compared with the plain loop (imread + detectBoard on every frame + one calibrateCamera over
+every usable frame), both measured in this process, one after the other.
+
+    .venv/bin/python bench/heldout.py [--cells careful720_png ...] [--seeds 101 102 ...] [--no-mrcal]
+
+Writes bench/results/heldout.md and bench/results/heldout.json (every run's numbers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+
+from accuracy import score, select_ros, solve_plain  # noqa: E402  (bench/accuracy.py)
+from renders import CELLS, SEEDS, capture_path, render  # noqa: E402
+
+from calibcoach.app.replay import run_replay  # noqa: E402
+from calibcoach.app.session import SessionSettings  # noqa: E402
+from calibcoach.coverage.board import BoardSpec  # noqa: E402
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection  # noqa: E402
+from calibcoach.drivers.lens import CameraModel  # noqa: E402
+from calibcoach.drivers.recording import read_truth  # noqa: E402
+from calibcoach.drivers.replay import open_source  # noqa: E402
+
+PLAIN_EVERY = 30  # frames: the recipe's "one frame a second" at 30 fps
+STILL_SMEAR_PX = 0.5  # a frame whose corners moved less than this during the exposure is still (mrcal's input)
+TRUSTED = ("excellent", "good", "acceptable")
+
+
+def recipe_model(camera: CameraModel) -> str:
+    """The model the method's recipe names for the lens: by its horizontal field of view."""
+    hfov = camera.field_of_view_deg()[0]
+    return "fisheye" if hfov >= 120 else "rational" if hfov > 90 else "pinhole"
+
+
+@dataclass
+class Run:
+    cell: str
+    seed: int
+    method: str
+    error_px: float = float("nan")
+    frames: int = 0
+    outcome: str = ""
+    seconds: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+
+def detect_all(path: Path) -> tuple[dict[int, Detection], float]:
+    """Every frame's detection by index, and the plain loop's detection time (imread included)."""
+    detector = CharucoBoardDetector(BoardSpec())
+    start = time.perf_counter()
+    found = {frame.index: detector.detect(frame.grey()) for frame in open_source(path)}
+    return found, time.perf_counter() - start
+
+
+def exposure_smear_px(truth, exposure_s: float, fps: float, spec: BoardSpec) -> dict[int, float]:
+    """Largest corner motion within each frame's exposure, from the true poses either side of it."""
+    corners = spec.corner_points_m()
+    poses = {i: (r, t) for i, r, t in truth.poses}
+    projected = {i: truth.camera.project(corners, r, t) for i, (r, t) in poses.items()}
+    smear = {}
+    for i in poses:
+        before, after = projected.get(i - 1, projected[i]), projected.get(i + 1, projected[i])
+        steps = 2 if (i - 1 in projected and i + 1 in projected) else 1
+        speed = np.linalg.norm(after - before, axis=1).max() / steps  # px per frame
+        smear[i] = float(speed * exposure_s * fps)
+    return smear
+
+
+def solve_and_score(name: str, views: list[Detection], truth: CameraModel, model: str, yardstick) -> Run:
+    run = Run("", 0, name, frames=len(views))
+    try:
+        estimate = solve_plain(views, CameraModel(model, truth.camera_matrix, np.zeros(8), truth.image_size))
+        run.error_px = score_on(truth, estimate, yardstick)
+        run.outcome = "accepted"
+    except cv2.error as exc:
+        run.outcome = "crashed: " + str(exc).strip().splitlines()[-1][:60]
+    return run
+
+
+def score_on(truth: CameraModel, estimate: CameraModel, yardstick) -> float:
+    return score(truth, estimate, yardstick)
+
+
+def calibcoach_run(path: Path, truth: CameraModel, yardstick, *, every_frame: bool) -> Run:
+    name = "calibcoach --every-frame" if every_frame else "calibcoach"
+    run = Run("", 0, name)
+    source = open_source(path)
+    start = time.perf_counter()
+    session, stats = run_replay(source, BoardSpec(), every_frame=every_frame)
+    try:
+        result = session.finish()
+    except Exception as exc:  # noqa: BLE001 - a bench row says what went wrong
+        run.outcome = f"failed: {str(exc)[:80]}"
+        run.seconds = time.perf_counter() - start
+        return run
+    run.seconds = time.perf_counter() - start
+    run.error_px = score_on(truth, result.calibration.camera, yardstick)
+    run.frames = len(result.calibration.views)
+    run.outcome = result.verdict.grade
+    run.extra = {"read": stats.frames_read, "tracked": stats.tracked, "model": result.calibration.camera.model,
+                 "rms_px": float(result.calibration.rms_px)}
+    return run
+
+
+def plain_loop_seconds(path: Path, detect_s: float, usable: list[Detection], size: tuple[int, int]) -> float:
+    """imread + detectBoard on every frame (measured above) + one calibrateCamera over every usable frame."""
+    start = time.perf_counter()
+    cv2.calibrateCamera([d.object_points_m.reshape(-1, 1, 3).astype(np.float32) for d in usable],
+                        [d.corners_px.reshape(-1, 1, 2).astype(np.float32) for d in usable], size, None, None)
+    return detect_s + time.perf_counter() - start
+
+
+def evaluate(cell_name: str, seed: int, *, use_mrcal: bool) -> list[Run]:
+    cell = CELLS[cell_name]
+    folder = render(cell_name, seed)
+    path = capture_path(cell_name, seed)
+    truth = read_truth(folder)
+    camera = truth.camera
+    spec = BoardSpec()
+    dets, detect_s = detect_all(path)
+    usable = [d for _i, d in sorted(dets.items()) if d.corner_count >= 6]
+    yardstick = [d.corners_px for d in usable]
+    model = recipe_model(camera)
+    runs = [solve_and_score("plain", [d for i, d in sorted(dets.items()) if i % PLAIN_EVERY == 0 and d.corner_count >= 6],
+                            camera, model, yardstick),
+            solve_and_score("ROS-style", select_ros([d for _i, d in sorted(dets.items())], camera.image_size),
+                            camera, model, yardstick)]
+    exposure_s = float((folder / "exposure_s.txt").read_text())
+    smear = exposure_smear_px(truth, exposure_s, cell.fps, spec)
+    still = [(f"{i:06d}", d) for i, d in sorted(dets.items()) if d.corner_count >= 6 and smear.get(i, 9.0) < STILL_SMEAR_PX]
+    if use_mrcal:
+        runs.append(mrcal_run(still, spec, camera, model, yardstick, folder))
+    for every_frame in (False, True):
+        runs.append(calibcoach_run(path, camera, yardstick, every_frame=every_frame))
+    if cell.container == "png":
+        plain_s = plain_loop_seconds(path, detect_s, usable, camera.image_size)
+        for run in runs:
+            if run.method.startswith("calibcoach"):
+                run.extra["plain_loop_s"] = plain_s
+                run.extra["ratio"] = run.seconds / plain_s
+    for run in runs:
+        run.cell, run.seed = cell_name, seed
+        run.extra["still_frames"] = len(still)
+        run.extra["exposure_ms"] = round(exposure_s * 1e3, 1)
+    return runs
+
+
+def mrcal_run(still: list[tuple[str, Detection]], spec: BoardSpec, camera: CameraModel, model: str, yardstick,
+              folder: Path) -> Run:
+    run = Run("", 0, "mrcal", frames=len(still))
+    try:
+        from mrcal_reference import mrcal_error_vs_truth, solve_with_mrcal  # bench/mrcal_reference.py
+    except ImportError as exc:
+        run.outcome = f"not run: {exc}"
+        return run
+    from calibcoach.app.solve.uncertainty import covered_region_mask
+
+    start = time.perf_counter()
+    solution = solve_with_mrcal([d for _n, d in still], spec, camera.image_size, model, folder / "mrcal",
+                                names=[n for n, _d in still])
+    run.seconds = time.perf_counter() - start
+    if getattr(solution, "error", None):
+        run.outcome = f"failed: {solution.error[:80]}"
+        return run
+    mask = covered_region_mask(camera.image_size, yardstick, (32, 18))
+    run.error_px = mrcal_error_vs_truth(camera, solution.cameramodel, mask, (32, 18))
+    run.outcome = "accepted"
+    return run
+
+
+def summary(runs: list[Run]) -> list[str]:
+    lines = ["| cell | method | error vs truth, px: median | worst | frames (median) | outcome | seconds (median) | replay / plain loop (worst) |",
+             "|---|---|---|---|---|---|---|---|"]
+    cells = sorted({r.cell for r in runs}, key=list(CELLS).index)
+    methods = ["plain", "ROS-style", "mrcal", "calibcoach", "calibcoach --every-frame"]
+    for cell in cells:
+        for method in methods:
+            rs = [r for r in runs if r.cell == cell and r.method == method]
+            if not rs:
+                continue
+            errors = np.array([r.error_px for r in rs])
+            finite = errors[np.isfinite(errors)]
+            med = f"{np.median(finite):.3f}" if finite.size else "-"
+            worst = f"{np.max(finite):.3f}" if finite.size == errors.size else "failed" if not finite.size else f"{np.max(finite):.3f} + {errors.size - finite.size} failed"
+            if method.startswith("calibcoach"):
+                trusted = sum(r.outcome in TRUSTED for r in rs)
+                outcome = f"{trusted}/{len(rs)} accepted"
+            else:
+                outcome = ", ".join(sorted({r.outcome for r in rs}))
+            secs = np.array([r.seconds for r in rs])
+            secs_text = f"{np.nanmedian(secs):.1f}" if np.isfinite(secs).any() else ""
+            ratios = [r.extra["ratio"] for r in rs if "ratio" in r.extra]
+            ratio = f"{max(ratios):.2f}" if ratios else ""
+            lines.append(f"| {cell} | {method} | {med} | {worst} | {int(np.median([r.frames for r in rs]))} | {outcome} | {secs_text} | {ratio} |")
+    return lines
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", nargs="+", default=list(CELLS), choices=list(CELLS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--no-mrcal", action="store_true", help="leave mrcal out")
+    parser.add_argument("--out", default="heldout", help="results file stem in bench/results/")
+    args = parser.parse_args()
+    results = ROOT / "results"
+    results.mkdir(exist_ok=True)
+    runs: list[Run] = []
+    for cell in args.cells:
+        for seed in args.seeds:
+            for run in evaluate(cell, seed, use_mrcal=not args.no_mrcal):
+                runs.append(run)
+                print(f"{cell} s{seed} {run.method:26s} {run.error_px:8.4f} px  {run.frames:3d} frames  {run.outcome}"
+                      f"  {run.seconds:6.1f} s  {json.dumps(run.extra)}", flush=True)
+    (results / f"{args.out}.json").write_text(json.dumps([asdict(r) for r in runs], indent=1))
+    text = "\n".join(summary(runs))
+    (results / f"{args.out}.md").write_text(text + "\n")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,121 @@
+"""Rendered captures for the accuracy bench: PNG folders and MJPG videos with their lens truth.
+
+A capture is rendered once into bench/cache/<cell>_s<seed>/ (git-ignored): `frames/` (PNG) or
+`capture.avi` (MJPG), and `truth.json` (the lens and every frame's board pose). Each cell fixes
+what a person and a room do to the footage (lens, hand style, tremor, light, container, frame
+rate); the seed draws everything else, including the exposure time, so no constant can be fitted
+to one exposure or one path.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.recording import write_truth
+from calibcoach.drivers.sim import LENSES, SimulatedCamera, handheld_trajectory
+
+CACHE = Path(__file__).resolve().parent / "cache"
+# Webcam MJPG at its usual quality: 8x8-block artefacts of about one grey level on the board's edges.
+MJPG_QUALITY = 80
+# Office exposures of webcams run from 1/100 s (bright) to 1/30 s (auto-exposure at its frame-rate
+# limit); each render draws one, so smear thresholds cannot ride on one simulator exposure.
+EXPOSURE_RANGE_S = (0.008, 0.033)
+
+
+def _wide1080() -> CameraModel:
+    """A ~105 deg action-camera-like 1080p lens: the 115 deg wide720 profile, resized and zoomed 1.1x (104 deg across)."""
+    base = LENSES["wide720"].resized((1920, 1080))
+    K = base.camera_matrix.copy()
+    K[0, 0] *= 1.1
+    K[1, 1] *= 1.1
+    return CameraModel("rational", K, base.dist_coeffs, (1920, 1080))
+
+
+BENCH_LENSES: dict[str, CameraModel] = {**LENSES, "wide1080": _wide1080()}
+
+
+@dataclass(frozen=True)
+class Cell:
+    """What is held fixed over the renders of one bench cell."""
+
+    lens: str
+    style: str  # "careful" | "sloppy" (fast swings, exits) | "frontal"
+    tremor: float  # x the style's tremor: 1 steady, 4 shaky
+    container: str  # "png" folder or "mjpg" video
+    low_light: bool
+    fps: float
+    seconds: float
+
+    @property
+    def frames(self) -> int:
+        return int(round(self.seconds * self.fps))
+
+
+CELLS: dict[str, Cell] = {
+    "careful720_png": Cell("webcam720", "careful", 1.0, "png", False, 30.0, 784 / 30),
+    "shaky720_png": Cell("webcam720", "careful", 4.0, "png", False, 30.0, 784 / 30),
+    "dim720_mjpg": Cell("webcam720", "careful", 2.0, "mjpg", True, 30.0, 784 / 30),
+    "messy720_mjpg": Cell("webcam720", "sloppy", 1.0, "mjpg", False, 30.0, 784 / 30),
+    "wide1080_mjpg": Cell("wide1080", "careful", 2.0, "mjpg", False, 20.0, 26.0),
+    "fisheye150_png": Cell("fisheye150", "careful", 2.0, "png", False, 30.0, 784 / 30),
+}
+# Seeds no tuning of calibcoach has used (the unit tests, guided bench and recordings use 0-9).
+SEEDS = (101, 102, 103, 104, 105)
+
+
+def capture_path(name: str, seed: int) -> Path:
+    """The folder calibcoach reads: the PNG folder, or the .avi for video cells."""
+    folder = CACHE / f"{name}_s{seed}"
+    return folder / ("frames" if CELLS[name].container == "png" else "capture.avi")
+
+
+def render(name: str, seed: int) -> Path:
+    """Render cell `name` with `seed` unless cached; returns the capture's folder (holds truth.json)."""
+    cell = CELLS[name]
+    folder = CACHE / f"{name}_s{seed}"
+    if (folder / "truth.json").exists():
+        return folder
+    folder.mkdir(parents=True, exist_ok=True)
+    camera, spec = BENCH_LENSES[cell.lens], BoardSpec()
+    rng = np.random.default_rng([seed, 2026])
+    exposure_s = float(rng.uniform(*EXPOSURE_RANGE_S))
+    trajectory = handheld_trajectory(camera, spec, cell.style, seconds=cell.seconds, seed=seed, tremor_scale=cell.tremor)
+    poses = trajectory.sample(seconds=cell.seconds, fps=cell.fps)
+    source = SimulatedCamera(camera, spec, poses, seed=seed, lens_name=cell.lens, trajectory=trajectory,
+                             low_light=cell.low_light, exposure_s=exposure_s)
+    start = time.perf_counter()
+    writer = None
+    if cell.container == "png":
+        (folder / "frames").mkdir(exist_ok=True)
+    else:
+        writer = cv2.VideoWriter(str(folder / "capture.avi"), cv2.VideoWriter_fourcc(*"MJPG"), cell.fps, camera.image_size)
+        writer.set(cv2.VIDEOWRITER_PROP_QUALITY, MJPG_QUALITY)
+    for frame in source:
+        image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+        if writer is None:
+            cv2.imwrite(str(folder / "frames" / f"{frame.index:06d}.png"), frame.image)
+        else:
+            writer.write(image)
+    if writer is not None:
+        writer.release()
+    write_truth(folder, camera, [(p.index, p.rvec, p.tvec) for p in poses])
+    (folder / "exposure_s.txt").write_text(f"{exposure_s:.4f}\n")
+    print(f"rendered {folder.name}: {len(poses)} frames, exposure {exposure_s * 1e3:.0f} ms, "
+          f"{time.perf_counter() - start:.0f} s", flush=True)
+    return folder
+
+
+if __name__ == "__main__":
+    import sys
+
+    names = sys.argv[1:] or list(CELLS)
+    for seed in SEEDS:
+        for cell_name in names:
+            render(cell_name, seed)
