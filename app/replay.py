@@ -23,6 +23,7 @@ from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 
+TRACKED_KINDS = ("folder", "video")  # footage from elsewhere; recordings replay a live session frame by frame
 _SETTLE_FRAMES = 30  # frames detected one by one while the print's variant is still unknown
 
 
@@ -43,15 +44,19 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     """Every frame of `source` in order with its detection, decoded and detected ahead on `workers` threads.
 
     A held board is tracked from the frame before rather than detected anew (`HeldFrameScan`,
-    app/scan.py) unless `every_frame`; the scan is appended to `scans_out` so the caller can
-    report how many frames were tracked.
+    app/scan.py) in footage from elsewhere (video files, image folders) unless `every_frame`; a
+    calibcoach recording is a live session's frames, and its replay decides each of them as the
+    live session did, so every frame is detected. The scan is appended to `scans_out` so the
+    caller can report how many frames were tracked.
     """
+    footage = source.info.kind in TRACKED_KINDS
     first = settle or CharucoBoardDetector(board)
     count = source.frame_count_for_random_access
     frames: Iterator[Frame] = iter(_LoadedInOrder(source, count, workers)) if count is not None else iter(source)
     yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
     spec = _settled_spec(first)
-    scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=not every_frame)
+    scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=footage and not every_frame,
+                         judge_transit=footage)
     if scans_out is not None:
         scans_out.append(scan)
     yield from scan

@@ -16,10 +16,18 @@ before it is *tracked* into it (`CharucoBoardDetector.track`: the previous marke
   moved more than about `TRACK_MAX_SHIFT_PX`; these are detected ahead on worker threads);
 - tracking failed (the board moved more, or a corner jumped).
 
+A frame of footage into and out of which the scene changed fast (`_TRANSIT_CHANGE`) shows a board
+in transit: it is marked so and the session rejects it as moving whatever its edges say (it
+smears, and on other renderers and real cameras its corners are biased along the motion); only
+every 4th such frame is detected at all. The tracked frames of a hold join the session's reserve
+when a fully detected frame of the same hold was judged usable and the board moved at most the
+selector's smear limit into and out of them (app/replay.py).
+
 Frames without a board whose thumbnail did not change either show no board either: their empty
 detection is repeated. Every decision depends on the images alone, never on timing or threads,
 so a replay is reproducible whatever the machine; `--every-frame` detects every frame in full
-(the reference this scan is measured against in bench/heldout.py).
+(the reference this scan is measured against in bench/heldout.py), and a calibcoach recording is
+always replayed that way, frame by frame as it was decided live.
 """
 
 from __future__ import annotations
@@ -90,9 +98,10 @@ class HeldFrameScan:
     """
 
     def __init__(self, frames: Iterable[Frame], make_detector: Callable[[], CharucoBoardDetector], *,
-                 workers: int = 2, lookahead: int = 8, track: bool = True) -> None:
+                 workers: int = 2, lookahead: int = 8, track: bool = True, judge_transit: bool = True) -> None:
         self._frames = iter(frames)
-        self._track = track  # False: every frame detected in full (--every-frame)
+        self._track = track  # False: every frame detected in full (--every-frame, recordings)
+        self._judge_transit = judge_transit  # False: no frame is marked in transit (a recording replays live decisions)
         self._make_detector = make_detector
         self._local = threading.local()
         self._workers, self._lookahead = max(1, int(workers)), max(2, int(lookahead))
@@ -139,7 +148,7 @@ class HeldFrameScan:
         """What to do with `frame`, decided from the images alone so that detections can start ahead."""
         if change_in <= _TRACKABLE_CHANGE:
             self._continuity += 1
-        transit = self._continuity >= _FOOTAGE_AFTER and min(change_in, change_out) > _TRANSIT_CHANGE
+        transit = self._judge_transit and self._continuity >= _FOOTAGE_AFTER and min(change_in, change_out) > _TRANSIT_CHANGE
         if transit and self._track and frame.index % _TRANSIT_SAMPLE:
             return _Plan(frame, thumb, None, transit=True, skip=True)
         if not self._track or frame.index % REDETECT_EVERY == 0 or change_in > _TRACKABLE_CHANGE:

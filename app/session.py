@@ -116,6 +116,7 @@ class CalibrationSession:
         self._check_image: tuple[int, np.ndarray] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
+        self._repeats: list[View] = []  # the final solve's repeats of held poses, added after the model choice
         self.budget_fill: tuple[int, int] = (0, 0)  # (frames added at the end, candidates they came from)
         self._candidates: list[CandidatePose] = []
         self._candidates_camera: CameraModel | None = None  # the intrinsics the candidates were built with
@@ -439,10 +440,13 @@ class CalibrationSession:
         self._fill_budget()
         stage("model choice")
         if self.settings.model == "auto":
+            # on the distinct poses only: odd/even halves of a hold's repeats would each see every pose
             choice = choose_model(self.views, self.image_size)
         else:
             choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
         initial = self.camera if self.camera.model == choice.chosen else None
+        self.views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)
+        self._repeats = []
         stage("robust solve")
         calibration = self._with_look_alikes_weighted(
             robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial))
@@ -517,10 +521,11 @@ class CalibrationSession:
             la, lb = look(a), look(b)
             return la is not None and lb is not None and look_alike(la, lb, self.settings.selector, diagonal)
 
-        added = fill_from_reserve(self.camera, self._information, self._error_weight, self._reserve, budget,
-                                  alike=alike, kept=self.views)
-        self.budget_fill = (len(added), len(self._reserve))
-        self.views = sorted(self.views + added, key=lambda v: v.frame_index)
+        distinct, repeats = fill_from_reserve(self.camera, self._information, self._error_weight, self._reserve, budget,
+                                              alike=alike, kept=self.views)
+        self.budget_fill = (len(distinct) + len(repeats), len(self._reserve))
+        self.views = sorted(self.views + distinct, key=lambda v: v.frame_index)
+        self._repeats = repeats
 
     def _look_alike_groups(self, views: Sequence[View], camera: CameraModel) -> list[int]:
         """Group number per view: frames showing the board at nearly the same place, size and tilt."""

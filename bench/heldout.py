@@ -51,6 +51,7 @@ from calibcoach.drivers.replay import open_source  # noqa: E402
 PLAIN_EVERY = 30  # frames: the recipe's "one frame a second" at 30 fps
 STILL_SMEAR_PX = 0.5  # a frame whose corners moved less than this during the exposure is still (mrcal's input)
 TRUSTED = ("excellent", "good", "acceptable")
+MRCAL_FRAMES = 150
 
 
 def recipe_model(camera: CameraModel) -> str:
@@ -155,8 +156,8 @@ def evaluate(cell_name: str, seed: int, *, use_mrcal: bool) -> list[Run]:
     exposure_s = float((folder / "exposure_s.txt").read_text())
     smear = exposure_smear_px(truth, exposure_s, cell.fps, spec)
     still = [(f"{i:06d}", d) for i, d in sorted(dets.items()) if d.corner_count >= 6 and smear.get(i, 9.0) < STILL_SMEAR_PX]
-    if use_mrcal:
-        runs.append(mrcal_run(still, spec, camera, model, yardstick, folder))
+    if use_mrcal:  # at most MRCAL_FRAMES of them, evenly spread (mrcal's solve grows with the views)
+        runs.append(mrcal_run(still[:: max(1, -(-len(still) // MRCAL_FRAMES))], spec, camera, model, yardstick, folder))
     for every_frame in (False, True):
         runs.append(calibcoach_run(path, camera, yardstick, every_frame=every_frame))
     if cell.container == "png":

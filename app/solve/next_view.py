@@ -127,8 +127,8 @@ MIN_FILL_GAIN = 0.002  # a reserve frame must cut E^2 by 0.2% to be worth solvin
 
 def fill_from_reserve(camera: CameraModel, information: np.ndarray, weight: np.ndarray | None,
                       reserve: Sequence[tuple[View, float]], budget: int, *,
-                      alike: Callable[[View, View], bool], kept: Sequence[View]) -> list[View]:
-    """Up to `budget` reserve frames: distinct poses first, then repeats of every pose alike.
+                      alike: Callable[[View, View], bool], kept: Sequence[View]) -> tuple[list[View], list[View]]:
+    """Up to `budget` reserve frames, as (distinct poses, repeats of every pose alike).
 
     1. Frames that look like nothing already in (`alike`: same place, size and tilt), greedily by
        the cut of E^2 they bring (each pick updates S): poses the live selection passed over.
@@ -167,6 +167,7 @@ def fill_from_reserve(camera: CameraModel, information: np.ndarray, weight: np.n
         repeats += [c[0] for c in candidates if alike(c[0], picked)]
         candidates = [c for c in candidates if not alike(c[0], picked)]
     poses = [*kept, *added]
+    distinct = list(added)
     queues = [sorted((r for r in repeats if alike(r, p)), key=lambda r, p=p: abs(r.frame_index - p.frame_index))
               for p in poses]
     taken: set[int] = set()
@@ -178,4 +179,4 @@ def fill_from_reserve(camera: CameraModel, information: np.ndarray, weight: np.n
                 repeat = queue.pop(0)
                 taken.add(repeat.frame_index)
                 added.append(repeat)
-    return added
+    return distinct, added[len(distinct):]

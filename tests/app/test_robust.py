@@ -362,6 +362,8 @@ def test_look_alike_weights_count_a_group_as_its_independent_share() -> None:
     assert look_alike_weights([0, 0, 1], 0.0) == [1.0, 1.0, 1.0]
     assert look_alike_weights([0, 0, 1], 1.0) == [0.5, 0.5, 1.0]
     np.testing.assert_allclose(look_alike_weights([5, 5, 5, 5, 2], 0.5), [2.5 / 4] * 4 + [1.0])
+    # a long hold's repeats average sensor noise, not the pose's own error: it counts as 3 frames at most
+    np.testing.assert_allclose(look_alike_weights([7] * 10 + [1], 0.0), [0.3] * 10 + [1.0])
 
 
 def test_look_alike_correlation_measures_shared_residuals() -> None:
