@@ -193,7 +193,8 @@ class _Feeder:
                     frame, detection = item
                     if self.assistant is None:
                         self.assistant = Assistant(self.settle.spec, frame.image_size, settings=self.settings,
-                                                   locked_controls=self.locked_controls, focus_events=self.focus_events)
+                                                   locked_controls=self.locked_controls, focus_events=self.focus_events,
+                                                   detector=self.settle)
                     step = self.assistant.feed_detected(frame, detection)
                 if step is not None and step.outcome is not None and step.frame is not None:
                     if self.on_outcome is not None:

@@ -248,10 +248,11 @@ def redetect_in_local_view(grey: np.ndarray, camera: CameraModel, detector: Char
     if len(ids) <= first.corner_count:
         return None
     new_at = {int(i): k for k, i in enumerate(new_ids)}
-    # For a corner both found, the plain detection's position stands (it was refined in the frame
-    # by the same rule): re-detection adds corners, it does not move the ones already there.
-    corners = np.array([first.corners_px[old[i]] if i in old else new_px[new_at[i]] for i in ids], np.float32).reshape(-1, 2)
-    mapped_px = np.array([first.corners_px[old[i]] if i in old else new_mapped[new_at[i]] for i in ids]).reshape(-1, 2)
+    # For a corner both found, the view's position wins: on the frames re-detected (plain
+    # detection short of corners: markers bent and squeezed) the plain positions of such corners
+    # were off by 0.37 px at the 95th percentile, the view's by 0.16 px (rendered fisheye, 470 corners).
+    corners = np.array([new_px[new_at[i]] if i in new_at else first.corners_px[old[i]] for i in ids], np.float32).reshape(-1, 2)
+    mapped_px = np.array([new_mapped[new_at[i]] if i in new_at else first.corners_px[old[i]] for i in ids]).reshape(-1, 2)
     all_corners = np.asarray(board.getChessboardCorners(), np.float32).reshape(-1, 3)
     id_array = np.array(ids, np.int32)
     markers, quads = _merged_markers(first, found, view)
