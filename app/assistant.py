@@ -169,8 +169,9 @@ class Assistant:
         The estimate is the one before the frame held for lookahead is decided, one frame behind;
         a solve moves it by fractions of a pixel, which no decision here notices.
         """
-        if self._detector is None or not self._detector.settled:
-            return detection  # re-detection must use the settled print (legacy/inverted) to find the same corners
+        if self._detector is None or not self._detector.settled or self.session.done:
+            # the settled print (legacy/inverted) is what finds the same corners; once done, frames only count
+            return detection
         if self.redetector is None or self.redetector.spec != self._detector.spec:
             self.redetector = Redetector(self._detector.spec)
         return self.redetector.improve(frame.index, frame.grey(), detection, self.session.detection_lens)

@@ -21,6 +21,7 @@ from calibcoach.app.scan import SparseScan
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 
@@ -36,6 +37,7 @@ class ReplayStats:
     board: BoardSpec  # with legacy/inverted settled
     variant_found: str | None
     passed_over: int = 0  # frames of a sparse scan never decoded: they repeated their neighbours' view
+    redetection: RedetectionCounts | None = None  # frames re-detected on a local view (wide lenses), None if none were
 
 
 class _ThreadDetectors:
@@ -162,8 +164,9 @@ def run_replay(
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
     passed_over = sum(scan.passed_over for scan in scans)
+    redetector = None if feed.assistant is None else feed.assistant.redetector
     return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
-                                settle.variant_found, passed_over)
+                                settle.variant_found, passed_over, None if redetector is None else redetector.counts)
 
 
 class _Feeder:

@@ -92,9 +92,15 @@ def truth_px(camera: CameraModel, rvec: np.ndarray, tvec: np.ndarray) -> tuple[n
     return px, inside
 
 
-def early_solve(camera: CameraModel, plain: list, model: str) -> CameraModel:
-    views = [View(i, "", d.ids, d.corners_px.astype(np.float64), d.object_points_m.astype(np.float64))
-             for i, d in enumerate(plain) if d.corner_count >= MIN_TRUE_CORNERS][:8]
+def early_solve(camera: CameraModel, plain: list, model: str, fallback: CameraModel) -> CameraModel:
+    """The reduced solve on the first 8 frames with 20+ corners (or the 8 richest with 6+; the guess without 3)."""
+    usable = [(i, d) for i, d in enumerate(plain) if d.corner_count >= FEW_CORNERS]
+    chosen = [(i, d) for i, d in usable if d.corner_count >= MIN_TRUE_CORNERS][:8]
+    if len(chosen) < 3:  # a blurred capture (low light, sloppy): the richest frames there are
+        chosen = sorted(usable, key=lambda item: -item[1].corner_count)[:8]
+    if len(chosen) < 3:
+        return fallback
+    views = [View(i, "", d.ids, d.corners_px.astype(np.float64), d.object_points_m.astype(np.float64)) for i, d in chosen]
     return solve(views, camera.image_size, model, reduced=True).camera
 
 
@@ -104,9 +110,8 @@ def run(lens: str, style: str, seed: int, args, tallies: dict[str, Tally], plain
     spec = BoardSpec().with_detected(legacy=False, inverted=False)
     detector = CharucoBoardDetector(spec)
     plain = [detector.detect(g) for g in data["images"]]
-    lenses = {"truth": camera, "early solve": early_solve(camera, plain, camera.model),
-              "guess": CalibrationSession(spec, camera.image_size,
-                                          SessionSettings(hfov_guess_deg=NOMINAL_FOV[lens])).detection_lens}
+    guess = CalibrationSession(spec, camera.image_size, SessionSettings(hfov_guess_deg=NOMINAL_FOV[lens])).detection_lens
+    lenses = {"truth": camera, "early solve": early_solve(camera, plain, camera.model, guess), "guess": guess}
     for name, estimate in lenses.items():
         tally = tallies[name]
         redetector = Redetector(spec)
