@@ -166,8 +166,9 @@ class Assistant:
 
         Here, on the thread that feeds the session in frame order, because the view needs the
         session's current lens estimate: a replay then re-detects exactly as the live run did.
-        The estimate is the one before the frame held for lookahead is decided, one frame behind;
-        a solve moves it by fractions of a pixel, which no decision here notices.
+        The estimate is the one from before the frame held for lookahead is decided (one frame
+        behind), the same lag live and in replay; re-detecting here rather than when the frame is
+        decided lets the lookahead's motion test compare re-detected corners on both sides.
         """
         if self._detector is None or not self._detector.settled or self.session.done:
             # the settled print (legacy/inverted) is what finds the same corners; once done, frames only count
