@@ -3,8 +3,8 @@
 Why: through a 150 deg fisheye a board off axis or far away is bent and squeezed. OpenCV's marker
 detector fits straight-sided quads to contours and reads the bits on a perspective grid, so bent
 markers are rejected and squeezed ones are read at too few pixels per bit: on rendered fisheye
-captures plain `detectBoard` found fewer than 6 corners on about a fifth of the sharp frames that
-showed 20+ corners (bench/results/redetect.md).
+captures plain `detectBoard` found fewer than 6 corners on 39 of the 242 sharp frames that showed 20+
+corners; this recovers 25-27 of them (bench/results/redetect.md).
 
 What: once the lens is roughly known (an incremental solve, or a field-of-view guess), a virtual
 pinhole camera is pointed at where the board is (from the markers and corners the plain detection
@@ -17,10 +17,11 @@ against a homography of the board in the view (a planar board in a pinhole view)
 Mapping back through the same maps makes the corners exact up to interpolation whatever the lens
 model's error: a wrong model only bends the view, it does not move the corners. Measured on the
 rendered fisheye (bench/redetect.py): with the focal length 2% off, the centre 3 px off and k1 off
-by 0.01 the recovered corners' median error stayed 0.06 px. Refining them again in the original
-image (`refine=True`: `cornerSubPix` with OpenCV's ChArUco window rule) made them worse (95th
-percentile 0.9 px against 0.14 px): the far boards this recovers leave 1-3 px windows in the frame,
-where the magnified view's detector had 2.5x more pixels to fit. So it is off by default.
+by 0.01 the recovered corners' median error stayed 0.06 px (two captures). Refining them again in
+the original image (`refine=True`: `cornerSubPix` with OpenCV's ChArUco window rule) made them
+worse (95th percentile 0.88 px against 0.44 px over eight captures' recovered frames): the far
+boards this recovers leave 1-3 px windows in the frame, where the magnified view's detector had
+2.5x more pixels to fit. So it is off by default.
 """
 
 from __future__ import annotations

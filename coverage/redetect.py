@@ -2,8 +2,7 @@
 
 Re-detection costs about one more detection (~30 ms at 720p), so it runs only where it can help:
 
-- the lens is wide (`WIDE_LENS_DEG`): below it the markers' sides stay straight enough for
-  OpenCV's quad fit and the view would be little more than a crop;
+- the lens is wide (`WIDE_LENS_DEG`), where bent and squeezed markers lose frames;
 - the frame gave too few corners to use (`FEW_CORNERS`), or far fewer than the board's visible
   extent promises (`PARTIAL_SHARE`, from a pose on the corners found);
 - something says where the board is: markers or corners of this frame, or else the previous
@@ -27,9 +26,11 @@ from calibcoach.coverage.virtual_view import BORDER_MARGIN_PX, seen_in_image
 from calibcoach.drivers.geometry import pose_matrix
 from calibcoach.drivers.lens import CameraModel
 
-# Re-detect only through lenses at least this wide (horizontal, through the edge midpoints): the
-# rendered 70 deg webcam bends a marker side by under 1% of its length anywhere in the image, and
-# the lenses where plain detection lost frames were the 115 deg wide and the 150 deg fisheye.
+# Re-detect only through lenses at least this wide (horizontal, through the edge midpoints), so
+# that sessions with ordinary lenses decide exactly as before (their benchmarks and recordings
+# stand). Not because the view cannot help there: on the rendered 70 deg webcam it recovered 17
+# of 28 lost frames too (far boards, by its magnification; bench/results/redetect.md), which is
+# left for a decision of its own. 90 deg: the rational model's range, where bending starts to matter.
 WIDE_LENS_DEG = 90.0
 # The selector's minimum (SelectorSettings.min_corners): a frame below it is of no use as it is.
 FEW_CORNERS = 6
