@@ -6,7 +6,6 @@ at the image edge, where plain detection finds 5 corners of the 70 in view (10 m
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -120,12 +119,24 @@ def test_redetector_leaves_narrow_lenses_and_complete_frames_alone(frames) -> No
     assert (wide.counts.tried, wide.counts.recovered) == (1, 1)
 
 
+def test_a_frame_without_markers_is_pointed_at_by_the_previous_frame(frames) -> None:
+    """A board held still: the frame before says where to look; a frame further back says nothing."""
+    grey, truth = frames[HARD]
+    redetector = Redetector(SPEC)
+    plain = CharucoBoardDetector(SPEC).detect(grey)
+    assert redetector.improve(10, grey, plain, FISHEYE).corner_count >= 25
+    nothing = Detection.empty()
+    found = redetector.improve(11, grey, nothing, FISHEYE)  # as if the markers had not been read at all
+    assert found.corner_count >= 25 and rms_against(truth, found) < 0.1
+    assert redetector.counts.from_previous_frame == 1
+    assert redetector.improve(13, grey, nothing, FISHEYE) is nothing  # frame 12 is missing: no hint
+
+
 @pytest.mark.parametrize(("hfov_guess", "recovered"), [(150.0, True), (70.0, False)])
 def test_assistant_redetects_with_the_sessions_lens_guess(frames, hfov_guess: float, recovered: bool) -> None:
     """Before any solve the session's field-of-view guess points the view; a 70 deg guess says: not wide."""
     hard, _ = frames[HARD]
     easy, _ = frames[EASY]
-    cv2.setNumThreads(1)
     assistant = Assistant(SPEC, FISHEYE.image_size, settings=SessionSettings(hfov_guess_deg=hfov_guess))
     assistant.feed(easy, 0)
     assistant.feed(hard, 250_000_000)
