@@ -29,6 +29,7 @@ from calibcoach.app.solve.result import Verdict
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.guidance import Guidance, Target
+from calibcoach.coverage.redetect import Redetector
 from calibcoach.drivers.base import Frame
 
 __all__ = ["Assistant", "Guidance", "Progress", "Result", "Step", "Target"]
@@ -96,17 +97,21 @@ class Assistant:
         locked_controls: the focus controls read back after locking focus (a driver's per-frame
             reports are compared with them; see app/focus_watch.py). Empty: only softness is watched.
         focus_events: drift events a recording stored (replay applies them as the live session did).
+        detector: the detector settling the print's variant when detection runs elsewhere (replay,
+            live): frames are re-detected on a local view (coverage/redetect.py) with its board
+            once settled. `feed` makes its own.
     """
 
     def __init__(self, board: BoardSpec | None = None, image_size: tuple[int, int] = (1280, 720), model: str | None = None,
                  *, settings: SessionSettings | None = None, locked_controls: Mapping[str, float] | None = None,
-                 focus_events: Sequence[FocusEvent] = ()) -> None:
+                 focus_events: Sequence[FocusEvent] = (), detector: CharucoBoardDetector | None = None) -> None:
         self.board = board or BoardSpec()
         base = settings or SessionSettings()
         if model is not None and model != base.model:
             base = replace(base, model=model)
         self.session = CalibrationSession(self.board, (int(image_size[0]), int(image_size[1])), base)
-        self._detector: CharucoBoardDetector | None = None
+        self._detector = detector
+        self.redetector: Redetector | None = None  # built once the print's variant is settled
         self._held: tuple[Frame, Detection, bool] | None = None
         self._count = 0
         self.last_outcome: FrameOutcome | None = None
@@ -149,12 +154,29 @@ class Assistant:
         Once the session is done, frames are still taken but decided as "frame limit"."""
         if self._detector is not None and self._detector.settled:
             self.session.board = self._detector.spec
+        detection = self._redetected(frame, detection)
         self._count = frame.index + 1
         held, self._held = self._held, (frame, detection, in_transit)
         if held is None:
             return Step(-1, False, "waiting", "a step decides the frame before it (one frame of lookahead)",
                         self.session.guide.guidance(done=self.session.done), self._progress(), None)
         return self._decide(held, following=(detection, frame.timestamp_ns))
+
+    def _redetected(self, frame: Frame, detection: Detection) -> Detection:
+        """The frame's detection, re-detected on a local view where that can help (wide lenses).
+
+        Here, on the thread that feeds the session in frame order, because the view needs the
+        session's current lens estimate: a replay then re-detects exactly as the live run did.
+        The estimate is the one from before the frame held for lookahead is decided (one frame
+        behind), the same lag live and in replay; re-detecting here rather than when the frame is
+        decided lets the lookahead's motion test compare re-detected corners on both sides.
+        """
+        if self._detector is None or not self._detector.settled or self.session.done:
+            # the settled print (legacy/inverted) is what finds the same corners; once done, frames only count
+            return detection
+        if self.redetector is None or self.redetector.spec != self._detector.spec:
+            self.redetector = Redetector(self._detector.spec)
+        return self.redetector.improve(frame.index, frame.grey(), detection, self.session.detection_lens)
 
     def _decide(self, item: tuple[Frame, Detection, bool], *, following: tuple[Detection, int] | None) -> Step:
         frame, detection, in_transit = item

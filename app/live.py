@@ -225,7 +225,8 @@ def run_live(
         nonlocal assistant
         if assistant is None:
             assistant = Assistant(detector.spec, frame.image_size, settings=settings, locked_controls=locked,
-                                  focus_events=() if recorded is None else focus_events(recorded.info.events))
+                                  focus_events=() if recorded is None else focus_events(recorded.info.events),
+                                  detector=detector)
         return handle(assistant.feed_detected(frame, detection))  # decides the frame before this one
 
     if recorded is not None:  # replay what was recorded, exactly as `calibrate` would, then go on live

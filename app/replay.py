@@ -20,6 +20,7 @@ from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 
@@ -36,6 +37,7 @@ class ReplayStats:
     board: BoardSpec  # with legacy/inverted settled
     variant_found: str | None
     tracked: int = 0  # frames whose held board was tracked from the frame before instead of detected anew
+    redetection: RedetectionCounts | None = None  # frames re-detected on a local view (wide lenses), None if none were
 
 
 def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
@@ -131,8 +133,9 @@ def run_replay(
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
     tracked = sum(scan.tracked for scan in scans)
+    redetector = None if feed.assistant is None else feed.assistant.redetector
     return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
-                                settle.variant_found, tracked)
+                                settle.variant_found, tracked, None if redetector is None else redetector.counts)
 
 
 @dataclass
@@ -183,7 +186,8 @@ class _Feeder:
                 self._close_hold(seen)
                 if self.assistant is None:
                     self.assistant = Assistant(self.settle.spec, seen.frame.image_size, settings=self.settings,
-                                               locked_controls=self.locked_controls, focus_events=self.focus_events)
+                                               locked_controls=self.locked_controls, focus_events=self.focus_events,
+                                               detector=self.settle)
                 if self._judged(self.assistant.feed_detected(seen.frame, seen.detection, in_transit=seen.in_transit)):
                     break
             else:

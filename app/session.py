@@ -75,6 +75,7 @@ _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 
 _LENS_MOVED_PX = 2.0
 _FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
+_FISHEYE_GUESS_DEG = 120.0  # a field-of-view guess this wide is taken as a fisheye (model_choice's fisheye limit)
 
 
 def _detection_of(view: View) -> Detection:
@@ -102,6 +103,7 @@ class CalibrationSession:
         self.image_size = image_size
         self.geometry = BoardGeometry.of(board)
         self.camera = CameraModel.from_fov(image_size, self.settings.hfov_guess_deg)
+        self._guess_lens: CameraModel | None = None  # see detection_lens
         self.selector = FrameSelector(image_size, squares_x=board.squares_x, settings=self.settings.selector,
                                       coverage=CoverageMap(image_size, self.settings.coverage,
                                                            ranges=ranges_for(self.camera, self.geometry)))
@@ -142,6 +144,22 @@ class CalibrationSession:
         if self.settings.error_target_px is not None:
             return self.settings.error_target_px
         return None if self.noise_px is None else error_target_px(self.noise_px, self.image_size)
+
+    @property
+    def detection_lens(self) -> CameraModel:
+        """The lens estimate to re-detect frames with (coverage/redetect.py).
+
+        The latest solve once there is one. Before it, the field-of-view guess, as an equidistant
+        fisheye from `_FISHEYE_GUESS_DEG` on: a pinhole cannot reach 90 deg off axis at all, and
+        an equidistant profile is within a few percent of real fisheye lenses (the rendered
+        150 deg lens: 484 px against the guess's 489 px).
+        """
+        if self.noise_px is not None:  # set by every incremental solve, with self.camera
+            return self.camera
+        if self._guess_lens is None:
+            hfov = self.settings.hfov_guess_deg
+            self._guess_lens = CameraModel.from_fov(self.image_size, hfov, "fisheye" if hfov >= _FISHEYE_GUESS_DEG else "pinhole")
+        return self._guess_lens
 
     def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool) -> None:
         """Frames a replay tracked through a hold instead of detecting them (app/scan.py).

@@ -9,7 +9,7 @@ per-frame cost stays one `detectBoard` call.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -26,9 +26,10 @@ class Detection:
     ids: np.ndarray  # (N,) int32 ChArUco corner ids, 0 .. corner_count-1
     object_points_m: np.ndarray  # (N, 3) float32 the same corners in the board frame, metres
     marker_ids: np.ndarray  # (M,) int32 ArUco marker ids found (M may be > 0 with N == 0)
-    # (M, 4, 2) float32 the markers' corners, pixels; None where unknown. A held board's next frame
-    # is tracked from them (`CharucoBoardDetector.track`).
-    marker_corners_px: np.ndarray | None = None
+    # (M, 4, 2) float32 those markers' corners, pixels; empty when the detection was rebuilt from
+    # stored corners. They say where the board is when too few ChArUco corners were found
+    # (coverage/local_view.py re-detects around them).
+    marker_corners_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 2), np.float32))
 
     @property
     def corner_count(self) -> int:
@@ -82,15 +83,15 @@ class CharucoBoardDetector:
         return self._run(self._detector, self._board, grey)
 
     def _run(self, detector: cv2.aruco.CharucoDetector, board: cv2.aruco.CharucoBoard, grey: np.ndarray) -> Detection:
-        corners, ids, _marker_corners, marker_ids = detector.detectBoard(grey)
+        corners, ids, marker_corners, marker_ids = detector.detectBoard(grey)
         mids = np.zeros((0,), np.int32) if marker_ids is None else np.asarray(marker_ids, np.int32).reshape(-1)
+        mcorners = np.asarray(marker_corners, np.float32).reshape(-1, 4, 2) if mids.size else np.zeros((0, 4, 2), np.float32)
         if ids is None or len(ids) == 0:
-            return Detection.empty(mids)
+            return replace(Detection.empty(mids), marker_corners_px=mcorners)
         corners = np.asarray(corners, np.float32).reshape(-1, 2)
         ids = np.asarray(ids, np.int32).reshape(-1)
         obj, _img = board.matchImagePoints(corners.reshape(-1, 1, 2), ids.reshape(-1, 1))
-        markers = np.asarray(_marker_corners, np.float32).reshape(-1, 4, 2)
-        return Detection(corners, ids, np.asarray(obj, np.float32).reshape(-1, 3), mids, markers)
+        return Detection(corners, ids, np.asarray(obj, np.float32).reshape(-1, 3), mids, mcorners)
 
     def track(self, grey: np.ndarray, previous: Detection) -> Detection | None:
         """The board of `previous` (a frame or two ago, barely moved) found again in `grey`, ~20x cheaper.
@@ -104,7 +105,7 @@ class CharucoBoardDetector:
         (0.050; 0.102), in 0.8 ms instead of 15. None when the board cannot be tracked (it moved
         more than `TRACK_MAX_SHIFT_PX`, or its shift is not one rigid move: corners jumped).
         """
-        if not self._settled or previous.marker_corners_px is None or previous.corner_count < 4:
+        if not self._settled or previous.marker_corners_px.shape[0] == 0 or previous.corner_count < 4:
             return None
         markers = tuple(m.reshape(1, 4, 2) for m in previous.marker_corners_px)
         ids = previous.marker_ids.reshape(-1, 1)
@@ -130,7 +131,8 @@ class CharucoBoardDetector:
         corners = np.asarray(corners, np.float32).reshape(-1, 2)
         cids = np.asarray(cids, np.int32).reshape(-1)
         obj, _img = self._board.matchImagePoints(corners.reshape(-1, 1, 2), cids.reshape(-1, 1))
-        return Detection(corners, cids, np.asarray(obj, np.float32).reshape(-1, 3), ids.reshape(-1).astype(np.int32))
+        return Detection(corners, cids, np.asarray(obj, np.float32).reshape(-1, 3), ids.reshape(-1).astype(np.int32),
+                         np.concatenate(markers).reshape(-1, 4, 2).astype(np.float32))
 
     def _detect_and_settle(self, grey: np.ndarray) -> Detection:
         """Try the print variants the spec leaves open; settle on the first that clearly works.
