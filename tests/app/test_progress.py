@@ -26,7 +26,7 @@ PLAIN_LINES = (
     r"frame \d+/20  kept \d+  coverage +\d+%  expected error (--|\d+\.\d{3}/\d+\.\d{3} px) +\d+ fps  last: [a-z ]+",
     r"  next: .+",
     r"calibcoach: read 20 frames in \d+\.\d s \(end of source\); kept \d+; solving\.\.\.",
-    r"calibcoach: rejected .+; the final solve also took \d+ of \d+ usable frames held in reserve \(highest information first\)",
+    r"calibcoach: rejected .+; the final solve also took \d+ of \d+ usable frames held in reserve \(poses of their own first, then repeats of every hold alike\)",
 )
 
 
