@@ -8,7 +8,7 @@ each capture is calibrated five ways from the same footage:
              calibrateCamera, with the model the recipe names for the lens's field of view;
   ROS-style  a frame is kept when its (x, y, size, skew) differs from every kept one by 0.2 (L1);
   mrcal      `mrcal-calibrate-cameras` on the detected corners of every still frame (smear in the
-             exposure under 0.5 px by the truth), the expert's reference (when python3-mrcal is there);
+             exposure under 1.5 px by the truth, the selector's limit), the expert's reference (when python3-mrcal is there);
   calibcoach `run_replay` + `finish` with the defaults, and with `every_frame`.
 
 Scored by the projection error against the lens truth over the region the capture's boards
@@ -49,7 +49,7 @@ from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 PLAIN_EVERY = 30  # frames: the recipe's "one frame a second" at 30 fps
-STILL_SMEAR_PX = 0.5  # a frame whose corners moved less than this during the exposure is still (mrcal's input)
+STILL_SMEAR_PX = 1.5  # a frame whose corners moved less than this during the exposure is still (mrcal's input): the selector's own smear limit
 TRUSTED = ("excellent", "good", "acceptable")
 MRCAL_FRAMES = 150
 

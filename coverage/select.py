@@ -25,6 +25,8 @@ from calibcoach.coverage.grid import Contribution, CoverageMap
 from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.sharpness import EdgeBlur
 
+_SEEN_FOR_SHARPNESS = 8  # frames with a board judged before their sharpness stands in for the camera's own
+
 REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred", "duplicate", "adds nothing", "frame limit",
                   "focus drift")
 
@@ -133,6 +135,7 @@ class FrameSelector:
         self.counts: dict[str, int] = dict.fromkeys(("accepted", *REJECT_REASONS), 0)
         self._diag = float(np.hypot(*image_size))
         self._blurs: list[float] = []  # edge blur of the frames kept, px
+        self._seen_sharpness: list[float] = []  # sharper edge family of frames judged, until three are kept
         self._speed_limit = self.settings.max_speed_px_s * image_size[0] / 1280.0
         self._transit_limit = self.settings.transit_speed_px_s * image_size[0] / 1280.0
 
@@ -155,7 +158,27 @@ class FrameSelector:
 
     def own_sharpness_px(self) -> float | None:
         """This camera's sharpness: the median edge blur of the frames kept so far (None before three)."""
-        return float(np.median(self._blurs)) if len(self._blurs) >= 3 else None
+        if len(self._blurs) >= 3:
+            return float(np.median(self._blurs))
+        # Before three frames are kept, the sharper quarter of the frames seen with a board: every
+        # capture holds the board still now and then, and waiting for kept frames instead let the
+        # speed hint (below) reject a shaky hand's every frame -- no frame kept, so no reference,
+        # so nothing kept (a 1080p capture at 20 fps with 2x tremor kept nothing for 80 frames).
+        if len(self._seen_sharpness) >= _SEEN_FOR_SHARPNESS:
+            return float(np.percentile(self._seen_sharpness, 25))
+        return None
+
+    def smeared(self, edges: EdgeBlur) -> bool:
+        """Whether a frame known to have moved (a pixel or more since the frame before) smeared past
+        the limit during its exposure, by its edges: along a board axis, or along a diagonal against
+        this camera's own sharpness (the same tests `decide` applies to a moving frame)."""
+        s = self.settings
+        if edges.along_smear_px() > s.max_smear_px and edges.along_widening() > s.min_smear_widening:
+            return True
+        own = self.own_sharpness_px()
+        if own is None or not np.isfinite(edges.sharp_px):
+            return True  # no reference for a diagonal smear yet: count it as smeared
+        return edges.diagonal_smear_px(own) > s.max_smear_px and edges.diagonal_widening(own) > s.min_smear_widening
 
     def blur_limit_px(self) -> float:
         """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""
@@ -202,6 +225,8 @@ class FrameSelector:
             # is smeared by the deceleration (0.4 px coherent corner shifts seen in simulation) while
             # the speed to the next frame already looks still.
             return Decision(False, "moving", "board just came into view", quality=0.25), None
+        if edges is not None and np.isfinite(edges.sharp_px) and len(self._blurs) < 3:
+            self._seen_sharpness.append(float(edges.sharp_px))
         own = self.own_sharpness_px()
         if motion_px_s is not None and motion_px_s > self._transit_limit:
             return Decision(False, "moving", f"{motion_px_s:.0f} px/s: in transit (limit {self._transit_limit:.0f})",
