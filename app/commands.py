@@ -35,7 +35,7 @@ class ProgressLine:
             return
         if self._bar is not None:
             p = outcome.progress
-            read = outcome.frame_index + 1  # a folder read sparsely passes over frames: its position, not a count
+            read = outcome.frame_index + 1  # tracked frames of a hold are not decided one by one: its position, not a count
             if self._bar.total is not None and read > self._bar.total:  # a video whose header undercounts
                 self._bar.total = read
             self._bar.update(max(0, read - self._bar.n))
@@ -125,7 +125,7 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
 
         with source:
             try:
-                # A small folder of photos is kept whole; a long sequence is read sparsely unless asked not to.
+                # A small folder of photos is kept whole; a long sequence tracks its held boards unless asked not to.
                 every_frame = args.every_frame or settings.selector.keep_all_usable
                 session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=on_outcome,
                                             every_frame=every_frame)

@@ -41,7 +41,6 @@ from accuracy import score, select_ros, solve_plain  # noqa: E402  (bench/accura
 from renders import CELLS, SEEDS, capture_path, render  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
-from calibcoach.app.session import SessionSettings  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection  # noqa: E402
 from calibcoach.drivers.lens import CameraModel  # noqa: E402

@@ -7,7 +7,7 @@ the other, on the same files (the page cache is warmed first, so neither pays fo
     .venv/bin/python bench/replay_speed.py [FOLDER] [--runs 3] [--style careful|sloppy]
 
 Without FOLDER, a 784-frame 720p handheld capture at 30 fps is rendered once into bench/cache/
-(~5 min). Prints one line per method, how many frames calibcoach read and passed over, and the
+(~5 min). Prints one line per method, how many frames calibcoach read and tracked, and the
 ratio calibcoach / plain (the target is <= 0.5).
 """
 
