@@ -18,7 +18,6 @@ from calibcoach.coverage.detector import CharucoBoardDetector
 from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.replay import ImageFolderSource
 
-
 SETTLED = BoardSpec().with_detected(legacy=False, inverted=False)  # as a replay settles it on its first frames
 
 
