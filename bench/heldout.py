@@ -211,7 +211,9 @@ def summary(runs: list[Run]) -> list[str]:
             worst = f"{np.max(finite):.3f}" if finite.size == errors.size else "failed" if not finite.size else f"{np.max(finite):.3f} + {errors.size - finite.size} failed"
             if method.startswith("calibcoach"):
                 trusted = sum(r.outcome in TRUSTED for r in rs)
-                outcome = f"{trusted}/{len(rs)} accepted"
+                plain = {r.seed: r.error_px for r in runs if r.cell == cell and r.method == "plain"}
+                better = sum(bool(np.isfinite(r.error_px)) and not (r.error_px > plain.get(r.seed, float("nan"))) for r in rs)
+                outcome = f"{trusted}/{len(rs)} accepted, <= plain in {better}/{len(rs)}"
             else:
                 outcome = ", ".join(sorted({r.outcome for r in rs}))
             secs = np.array([r.seconds for r in rs])
