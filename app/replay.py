@@ -152,8 +152,10 @@ class _Feeder:
     """Feeds scanned frames to one `Assistant` (which looks one frame ahead, like live).
 
     Fully detected frames go through the session's judgement; tracked frames wait until a fully
-    detected frame of their hold (before or after them) has been judged usable, then join the
-    reserve if the board stood still on both sides of each (`_still_repeats`).
+    detected frame of their hold (before or after them) has been judged, then join the reserve if
+    the hold was usable and the board stood still on both sides of each (`_still_repeats`), or
+    moved up to `TRACK_MAX_SHIFT_PX` without smearing by its edges (`CalibrationSession.smeared`).
+    Frames skipped in transit are only counted as seen.
     """
 
     def __init__(self, settle: CharucoBoardDetector, settings: SessionSettings,

@@ -230,10 +230,14 @@ def main() -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--no-mrcal", action="store_true", help="leave mrcal out")
     parser.add_argument("--out", default="heldout", help="results file stem in bench/results/")
+    parser.add_argument("--merge", nargs="+", type=Path, help="only summarise these earlier .json results together")
     args = parser.parse_args()
     results = ROOT / "results"
     results.mkdir(exist_ok=True)
     runs: list[Run] = []
+    if args.merge:  # runs measured in several processes (cells rendered at different times)
+        runs = [Run(**r) for path in args.merge for r in json.loads(path.read_text())]
+        args.cells = []
     for cell in args.cells:
         for seed in args.seeds:
             for run in evaluate(cell, seed, use_mrcal=not args.no_mrcal):
