@@ -19,7 +19,7 @@ from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.detector import TRACK_MAX_SHIFT_PX, CharucoBoardDetector, Detection
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
 from calibcoach.drivers.errors import SourceError
@@ -153,8 +153,7 @@ class _Feeder:
 
     Fully detected frames go through the session's judgement; tracked frames wait until a fully
     detected frame of their hold (before or after them) has been judged, then join the reserve if
-    the hold was usable and the board stood still on both sides of each (`_still_repeats`), or
-    moved up to `TRACK_MAX_SHIFT_PX` without smearing by its edges (`CalibrationSession.smeared`).
+    the hold was usable and the board stood still on both sides of each (`_still_repeats`).
     Frames skipped in transit are only counted as seen.
     """
 
@@ -245,26 +244,19 @@ class _Feeder:
             # frames were rejected only for moving (a move's first or last frame), the tracked
             # frames' own stillness decides.
             usable = "usable" in judged or all(j in ("moving", None) for j in judged)
+            # Only the motion bound, never the edges: on a dim 720p video (48 ms exposures) letting
+            # tracked frames that moved 1.5-3 px in by their edges doubled the true error.
             still = _still_repeats(hold, self.settings.selector.max_smear_px)
-            if usable:  # those that moved more are judged by their edges, as a fully detected frame would be
-                still = [ok or (max(into, out) <= TRACK_MAX_SHIFT_PX and not session.smeared(f, d))
-                         for ok, (f, d, _s), into, out in zip(still, hold.repeats, *_moves(hold), strict=True)]
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable)
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
-
-
-def _moves(hold: _Hold) -> tuple[list[float], list[float]]:
-    """How far the board moved into and out of each tracked frame of `hold`, px."""
-    into = [shift for _f, _d, shift in hold.repeats]
-    return into, into[1:] + [hold.shift_after]
 
 
 def _still_repeats(hold: _Hold, max_move_px: float) -> list[bool]:
     """Whether the board moved at most `max_move_px` into and out of each tracked frame.
 
     A board that moved no more than that between frames cannot have smeared more within the
-    exposure (never longer than the frame interval): the selector's own smear limit. Frames that
-    moved more (at 20 fps and 1080p a shaky hand's tremor often does) are judged by their edges.
+    exposure (never longer than the frame interval): the selector's own smear limit.
     """
-    into, out_of = _moves(hold)
+    into = [shift for _f, _d, shift in hold.repeats]
+    out_of = into[1:] + [hold.shift_after]
     return [a <= max_move_px and b <= max_move_px for a, b in zip(into, out_of, strict=True)]

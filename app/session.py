@@ -161,10 +161,6 @@ class CalibrationSession:
             self._guess_lens = CameraModel.from_fov(self.image_size, hfov, "fisheye" if hfov >= _FISHEYE_GUESS_DEG else "pinhole")
         return self._guess_lens
 
-    def smeared(self, frame: Frame, detection: Detection) -> bool:
-        """Whether a tracked frame that moved since the frame before smeared past the selector's limit."""
-        return self.selector.smeared(edge_blur(frame.grey(), detection.corners_px, detection.object_points_m))
-
     def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool) -> None:
         """Frames a replay tracked through a hold instead of detecting them (app/scan.py).
 

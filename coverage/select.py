@@ -160,25 +160,13 @@ class FrameSelector:
         """This camera's sharpness: the median edge blur of the frames kept so far (None before three)."""
         if len(self._blurs) >= 3:
             return float(np.median(self._blurs))
-        # Before three frames are kept, the sharper quarter of the frames seen with a board: every
+        # Before three frames are kept, the sharpest of the frames seen with a board (5th percentile): every
         # capture holds the board still now and then, and waiting for kept frames instead let the
         # speed hint (below) reject a shaky hand's every frame -- no frame kept, so no reference,
         # so nothing kept (a 1080p capture at 20 fps with 2x tremor kept nothing for 80 frames).
         if len(self._seen_sharpness) >= _SEEN_FOR_SHARPNESS:
-            return float(np.percentile(self._seen_sharpness, 25))
+            return float(np.percentile(self._seen_sharpness, 5))
         return None
-
-    def smeared(self, edges: EdgeBlur) -> bool:
-        """Whether a frame known to have moved (a pixel or more since the frame before) smeared past
-        the limit during its exposure, by its edges: along a board axis, or along a diagonal against
-        this camera's own sharpness (the same tests `decide` applies to a moving frame)."""
-        s = self.settings
-        if edges.along_smear_px() > s.max_smear_px and edges.along_widening() > s.min_smear_widening:
-            return True
-        own = self.own_sharpness_px()
-        if own is None or not np.isfinite(edges.sharp_px):
-            return True  # no reference for a diagonal smear yet: count it as smeared
-        return edges.diagonal_smear_px(own) > s.max_smear_px and edges.diagonal_widening(own) > s.min_smear_widening
 
     def blur_limit_px(self) -> float:
         """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""

@@ -163,7 +163,7 @@ def test_the_speed_hint_decides_until_the_cameras_sharpness_is_known() -> None:
     assert decide(sel, det, pose, motion_px_s=25.5, edges=EdgeBlur(float("inf"), float("inf"))).reason == "moving"
 
 
-def test_before_three_kept_frames_the_sharper_quarter_of_the_frames_seen_is_the_cameras_sharpness() -> None:
+def test_before_three_kept_frames_the_sharpest_frames_seen_give_the_cameras_sharpness() -> None:
     # a shaky hand: every frame moves faster than the hint allows, so none is kept; waiting for
     # three kept frames would leave the speed deciding for ever
     det, pose = seen()
@@ -174,12 +174,10 @@ def test_before_three_kept_frames_the_sharper_quarter_of_the_frames_seen_is_the_
         d = decide(sel, det, pose, edges=EdgeBlur(sharp, sharp), **moving)
         assert d.reason == "moving" and "until this camera's own sharpness" in d.detail
     decide(sel, det, pose, edges=EdgeBlur(1.4, 1.4), **moving)  # the 8th frame with a board
-    assert sel.own_sharpness_px() == pytest.approx(np.percentile([*widths, 1.4], 25))
+    assert sel.own_sharpness_px() == pytest.approx(np.percentile([*widths, 1.4], 5))
     # from now the edges decide: as sharp as the camera is still, 35% wider while moving is smeared
-    assert decide(sel, det, pose, edges=EdgeBlur(0.88, 0.88), **moving).reason == "adds nothing"
+    assert decide(sel, det, pose, edges=EdgeBlur(0.82, 0.82), **moving).reason == "adds nothing"
     assert decide(sel, det, pose, edges=EdgeBlur(1.2, 1.2), **moving).reason == "moving"
-    assert sel.smeared(EdgeBlur(1.2, 1.2)) and not sel.smeared(EdgeBlur(0.88, 0.88))
-    assert sel.smeared(edges_with_smear(0.88, 2.0))  # along a board axis, whatever the reference
 
 
 def edges_with_smear(sharp: float, smear: float) -> EdgeBlur:
