@@ -455,6 +455,7 @@ class CalibrationSession:
         if len(self.views) < 3:
             raise self._not_enough_views_error()
         stage("frame budget")
+        kept_live = list(self.views)
         self._fill_budget()
         stage("model choice")
         if self.settings.model == "auto":
@@ -463,11 +464,24 @@ class CalibrationSession:
         else:
             choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
         initial = self.camera if self.camera.model == choice.chosen else None
+        distinct = self.views
         self.views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)
         self._repeats = []
         stage("robust solve")
-        calibration = self._with_look_alikes_weighted(
-            robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial))
+        # cv2.fisheye.calibrate re-initialises every view's pose at each step and asserts when one turns
+        # degenerate (robust.solve_kept leaves out one such frame, not several); among hundreds of
+        # frames that happened on 1 of 5 fisheye renders. Then the distinct poses alone, then the frames
+        # kept live (which the incremental solves took), are solved instead.
+        fallbacks = [v for v in (distinct, kept_live) if 3 <= len(v) < len(self.views)]
+        while True:
+            try:
+                solved = robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial)
+                break
+            except CalibrationError:
+                if not fallbacks:
+                    raise
+                self.views = fallbacks.pop(0)
+        calibration = self._with_look_alikes_weighted(solved)
         corner_sets = [v.image_points_px for v in calibration.views]
         # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve
         stage("uncertainty")
