@@ -476,6 +476,7 @@ class CalibrationSession:
         # degenerate (robust.solve_kept leaves out one such frame, not several); among hundreds of
         # frames that happened on 1 of 5 fisheye renders. Then the distinct poses alone, then the frames
         # kept live (which the incremental solves took), are solved instead.
+        offered = len(self.views)
         fallbacks = [v for v in (distinct, kept_live) if 3 <= len(v) < len(self.views)]
         while True:
             try:
@@ -506,6 +507,9 @@ class CalibrationSession:
             noise_px=noise,
             target_px=self.settings.error_target_px,
         )
+        if len(self.views) < offered:
+            verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
+                              f"{offered} usable frames; solved on {len(self.views)} of them instead."))
         if self.focus_drift is not None:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"Focus drifted ({self.focus_drift}): frames taken after "
                               "it were left out; lock focus at the recorded value and continue with --resume to add more."))
