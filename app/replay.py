@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 from calibcoach.app.assistant import Assistant, Step
@@ -21,7 +20,7 @@ from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSett
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.redetect import RedetectionCounts
-from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame
+from calibcoach.drivers.base import Frame, FrameSource
 from calibcoach.drivers.errors import SourceError
 
 TRACKED_KINDS = ("folder", "video")  # footage from elsewhere; recordings replay a live session frame by frame
@@ -43,7 +42,7 @@ class ReplayStats:
 def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
                     settle: CharucoBoardDetector | None = None, scans_out: list[HeldFrameScan] | None = None,
                     every_frame: bool = False) -> Iterator[Seen]:
-    """Every frame of `source` in order with its detection, decoded and detected ahead on `workers` threads.
+    """Every frame of `source` in order with its detection (the source decodes ahead, `workers` threads detect).
 
     A held board is tracked from the frame before rather than detected anew (`HeldFrameScan`,
     app/scan.py) in footage from elsewhere (video files, image folders) unless `every_frame`; a
@@ -53,8 +52,7 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     """
     footage = source.info.kind in TRACKED_KINDS
     first = settle or CharucoBoardDetector(board)
-    count = source.frame_count_for_random_access
-    frames: Iterator[Frame] = iter(_LoadedInOrder(source, count, workers)) if count is not None else iter(source)
+    frames: Iterator[Frame] = iter(source)  # sources decode ahead themselves (drivers/replay.py `_decoded_ahead`)
     yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
     spec = _settled_spec(first)
     scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=footage and not every_frame,
@@ -70,32 +68,6 @@ def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterat
         yield frame, detector.detect(frame.grey())
         if detector.settled or frame.index >= _SETTLE_FRAMES:
             return
-
-
-class _LoadedInOrder:
-    """A random-access source's frames in order, loaded (decoded) ahead on worker threads."""
-
-    def __init__(self, source: FrameSource, count: int, workers: int) -> None:
-        self.source, self.count, self.workers = source, count, max(1, workers)
-        source.skipped = []
-
-    def __iter__(self) -> Iterator[Frame]:
-        with ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="load") as pool:
-            pending: deque[Future] = deque()
-            next_index = 0
-            try:
-                while next_index < self.count or pending:
-                    while next_index < self.count and len(pending) < 4 * self.workers:
-                        pending.append(pool.submit(self.source.load, next_index))
-                        next_index += 1
-                    item = pending.popleft().result()
-                    if isinstance(item, SkippedFrame):
-                        self.source.skipped.append(item)
-                        continue
-                    yield item
-            finally:
-                for future in pending:
-                    future.cancel()
 
 
 def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:

@@ -83,19 +83,6 @@ class FrameSource(abc.ABC):
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 
-    @property
-    def frame_count_for_random_access(self) -> int | None:
-        """How many frames `load` can fetch, or None when the source can only be read in order."""
-        return None
-
-    def load(self, index: int) -> Frame | SkippedFrame:
-        """Frame `index` out of order (thread-safe), for sources whose frames are independent files.
-
-        Lets a replay look at every fourth frame of a still stretch and skip the rest without
-        decoding them. Unreadable frames come back as a SkippedFrame for the caller to report.
-        """
-        raise NotImplementedError(f"{type(self).__name__} is read in order only")
-
     def close(self) -> None:  # noqa: B027 - optional hook, most replay sources hold nothing open
         """Release the device or file handle."""
 

@@ -218,13 +218,6 @@ class ImageFolderSource(FrameSource):
                 continue
             yield item
 
-    @property
-    def frame_count_for_random_access(self) -> int:
-        return len(self._files)
-
-    def load(self, index: int) -> Frame | SkippedFrame:
-        return self._frame_or_skip(index, _read_image(self._files[index]))
-
     def _frame_or_skip(self, index: int, image: np.ndarray | None) -> Frame | SkippedFrame:
         """The frame, or why it is skipped; image: (H, W) uint8 grey or (H, W, 3) uint8 BGR, or None."""
         path = self._files[index]
