@@ -74,8 +74,7 @@ class Seen:
     detection: Detection
     tracked_from: int | None  # the frame whose board was tracked into this one; None: detected in full
     shift_px: float | None  # tracked frames: how far the board moved since `tracked_from`, px
-    thumb: np.ndarray | None = None  # (45, 80) float32 grey thumbnail
-    in_transit: bool = False  # the scene changed fast into and out of it (see `_TRANSIT_CHANGE`): never used
+    in_transit: bool = False  # the scene changed fast into and out of it (see `_TRANSIT_CHANGE`): never in a solve
     skipped: bool = False  # in transit and not sampled: not detected (its detection is empty)
 
 
@@ -122,19 +121,21 @@ class HeldFrameScan:
         with ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="scan") as pool:
             window: deque[_Plan] = deque()
             previous: Seen | None = None
-            newest: tuple[Frame, np.ndarray, float] | None = None  # waits for its successor to show its change out
+            # the newest frame waits for its successor, whose change in is its change out
+            newest: Frame | None = None
+            newest_thumb, newest_change = np.zeros(0, np.float32), float("inf")
             try:
                 for frame in self._frames:
                     thumb = thumbnail(frame.grey())
-                    change_in = float("inf") if newest is None else scene_change(newest[1], thumb)
+                    change_in = float("inf") if newest is None else scene_change(newest_thumb, thumb)
                     if newest is not None:
-                        window.append(self._plan(*newest, change_out=change_in, pool=pool))
-                    newest = (frame, thumb, change_in)
+                        window.append(self._plan(newest, newest_change, change_out=change_in, pool=pool))
+                    newest, newest_thumb, newest_change = frame, thumb, change_in
                     while len(window) > self._lookahead:
                         previous = self._see(window.popleft(), previous)
                         yield previous
                 if newest is not None:
-                    window.append(self._plan(*newest, change_out=float("inf"), pool=pool))
+                    window.append(self._plan(newest, newest_change, change_out=float("inf"), pool=pool))
                 while window:
                     previous = self._see(window.popleft(), previous)
                     yield previous
@@ -143,30 +144,30 @@ class HeldFrameScan:
                     if plan.detection is not None:
                         plan.detection.cancel()
 
-    def _plan(self, frame: Frame, thumb: np.ndarray, change_in: float, *, change_out: float,
+    def _plan(self, frame: Frame, change_in: float, *, change_out: float,
               pool: ThreadPoolExecutor) -> _Plan:
         """What to do with `frame`, decided from the images alone so that detections can start ahead."""
         if change_in <= _TRACKABLE_CHANGE:
             self._continuity += 1
         transit = self._judge_transit and self._continuity >= _FOOTAGE_AFTER and min(change_in, change_out) > _TRANSIT_CHANGE
         if transit and self._track and frame.index % _TRANSIT_SAMPLE:
-            return _Plan(frame, thumb, None, transit=True, skip=True)
+            return _Plan(frame, change_in, None, transit=True, skip=True)
         if not self._track or frame.index % REDETECT_EVERY == 0 or change_in > _TRACKABLE_CHANGE:
-            return _Plan(frame, thumb, pool.submit(self._detect, frame), transit=transit)
-        return _Plan(frame, thumb, None, transit=transit)
+            return _Plan(frame, change_in, pool.submit(self._detect, frame), transit=transit)
+        return _Plan(frame, change_in, None, transit=transit)
 
     def _detect(self, frame: Frame) -> Detection:
         return self._detector().detect(frame.grey())
 
     def _see(self, plan: _Plan, previous: Seen | None) -> Seen:
-        frame, thumb = plan.frame, plan.thumb
+        frame = plan.frame
         if plan.skip:
             self.skipped += 1
-            return Seen(frame, Detection.empty(), None, None, thumb, in_transit=True, skipped=True)
+            return Seen(frame, Detection.empty(), None, None, in_transit=True, skipped=True)
         if plan.detection is not None:
             self.detected += 1
-            return self._fresh(Seen(frame, plan.detection.result(), None, None, thumb, in_transit=plan.transit), previous)
-        assert previous is not None and previous.thumb is not None  # the first frame is always detected
+            return self._fresh(Seen(frame, plan.detection.result(), None, None, in_transit=plan.transit), previous)
+        assert previous is not None  # the first frame is always detected
         if previous.detection.corner_count >= _MIN_CORNERS:
             # From the hold's richest detection when it found more corners than the frame before
             # (a partial view's detection flickers: each fresh one finds another few), else from
@@ -177,13 +178,13 @@ class HeldFrameScan:
                 tracked = self._detector().track(frame.grey(), source.detection)
                 if tracked is not None:
                     self.tracked += 1
-                    return Seen(frame, tracked, previous.frame.index, board_shift_px(previous.detection, tracked), thumb,
+                    return Seen(frame, tracked, previous.frame.index, board_shift_px(previous.detection, tracked),
                                 in_transit=plan.transit)
-        elif not previous.skipped and scene_change(previous.thumb, thumb) <= _SAME_SCENE_CHANGE:
+        elif not previous.skipped and plan.change_in <= _SAME_SCENE_CHANGE:  # previous is the frame just before
             self.repeated += 1
-            return Seen(frame, previous.detection, None, None, thumb, in_transit=plan.transit)
+            return Seen(frame, previous.detection, None, None, in_transit=plan.transit)
         self.detected += 1
-        return self._fresh(Seen(frame, self._detect(frame), None, None, thumb, in_transit=plan.transit), previous)
+        return self._fresh(Seen(frame, self._detect(frame), None, None, in_transit=plan.transit), previous)
 
     def _fresh(self, seen: Seen, previous: Seen | None) -> Seen:
         """Note a full detection as the hold's richest when it continues the hold (trackable from the frame before)."""
@@ -200,7 +201,7 @@ class HeldFrameScan:
 @dataclass(frozen=True, slots=True)
 class _Plan:
     frame: Frame
-    thumb: np.ndarray
+    change_in: float  # `scene_change` from the frame before (inf for the first)
     detection: Future[Detection] | None  # started ahead; None: track the board (or repeat the empty scene)
     transit: bool = False
     skip: bool = False  # in transit and not sampled: not detected at all
