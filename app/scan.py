@@ -19,7 +19,7 @@ before it is *tracked* into it (`CharucoBoardDetector.track`: the previous marke
 A frame of footage into and out of which the scene changed fast (`_TRANSIT_CHANGE`) shows a board
 in transit: it is marked so and the session rejects it as moving whatever its edges say (it
 smears, and on other renderers and real cameras its corners are biased along the motion); only
-every 4th such frame is detected at all. The tracked frames of a hold join the session's reserve
+every 8th such frame is detected at all. The tracked frames of a hold join the session's reserve
 when a fully detected frame of the same hold was judged usable and the board moved at most the
 selector's smear limit into and out of them (app/replay.py).
 
@@ -56,11 +56,12 @@ _THUMB_SIZE = (80, 45)  # (width, height): 16 px cells at 720p
 _TRACKABLE_CHANGE = 0.1
 # A change this large (p5 of 8+ px moves on 720p renders) into and out of a frame of footage is a
 # board in transit: at 30 fps it smears >= 2 px even in an 8 ms exposure, past the selector's
-# 1.5 px limit, so only every 4th such frame is detected (the session still sees the board pass).
+# 1.5 px limit, so only every 8th such frame is detected (the session still sees the board pass, and
+# counts it moving for its holding hint; a second of transit still gives it 3-4 such frames).
 # Independent stills change this much between all neighbours: they are detected until the source
 # has shown itself to be footage (`_FOOTAGE_AFTER` neighbours alike).
 _TRANSIT_CHANGE = 0.4
-_TRANSIT_SAMPLE = 4
+_TRANSIT_SAMPLE = 8
 _FOOTAGE_AFTER = 5
 _SAME_SCENE_CHANGE = 0.015  # no board and a change this small (~3 of 200 grey levels): the same empty scene
 _MIN_CORNERS = 6
@@ -83,9 +84,19 @@ def thumbnail(grey: np.ndarray) -> np.ndarray:
 
 
 def scene_change(before: np.ndarray, after: np.ndarray) -> float:
-    """Largest thumbnail cell change between two frames, as a share of the scene's contrast."""
-    contrast = float(np.percentile(after, 99) - np.percentile(after, 1))
-    return float(np.max(np.abs(after - before))) / max(contrast, 10.0)
+    """Largest thumbnail cell change between two frames, as a share of the scene's contrast (p1 to p99)."""
+    return float(np.max(np.abs(after - before))) / max(_spread(after, 1.0, 99.0), 10.0)
+
+
+def _spread(values: np.ndarray, low_pct: float, high_pct: float) -> float:
+    """np.percentile(values, high_pct) - np.percentile(values, low_pct), from one partial sort (~10x cheaper)."""
+    flat = values.ravel()
+    lo, hi = (p / 100.0 * (flat.size - 1) for p in (low_pct, high_pct))
+    i, j = int(lo), int(hi)
+    part = np.partition(flat, sorted({i, min(i + 1, flat.size - 1), j, min(j + 1, flat.size - 1)}))
+    low = part[i] + (part[min(i + 1, flat.size - 1)] - part[i]) * (lo - i)
+    high = part[j] + (part[min(j + 1, flat.size - 1)] - part[j]) * (hi - j)
+    return float(high - low)
 
 
 class HeldFrameScan:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_view
+from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_views
 from calibcoach.drivers.geometry import pose_facing_pixel, pose_matrix
 from calibcoach.drivers.lens import CameraModel
 
@@ -90,7 +90,7 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
     w, h = camera.image_size
     centres = np.array([[fx * w, fy * h] for fy in POSITIONS_Y for fx in POSITIONS_X])
     rays = camera.unproject(centres)
-    out: list[CandidatePose] = []
+    placed = []  # (key, centre, range, name, tilt_x, tilt_y, rvec, tvec) of the poses that keep clear of the lens
     for k, (centre, ray) in enumerate(zip(centres, rays, strict=True)):
         ix, iy = k % len(POSITIONS_X), k // len(POSITIONS_X)
         for it, (tx, ty) in enumerate(TILTS_DEG):
@@ -99,12 +99,11 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
                 rvec, tvec = pose_facing_pixel(ray, board.centre_m, rng, tilt_x_deg=tx, tilt_y_deg=ty)
                 if np.min((board.outline_m @ pose_matrix(rvec).T + tvec)[:, 2]) < MIN_RANGE_M:
                     continue
-                view = virtual_view(camera, board, rvec, tvec)
-                if view.corner_count < MIN_TARGET_CORNERS:
-                    continue
-                out.append(CandidatePose((ix, iy, it, name), (float(centre[0]), float(centre[1])), float(rng), name,
-                                         float(tx), float(ty), view))
-    return out
+                placed.append(((ix, iy, it, name), centre, rng, name, tx, ty, rvec, tvec))
+    views = virtual_views(camera, board, [(p[6], p[7]) for p in placed])
+    return [CandidatePose(key, (float(centre[0]), float(centre[1])), float(rng), name, float(tx), float(ty), view)
+            for (key, centre, rng, name, tx, ty, _r, _t), view in zip(placed, views, strict=True)
+            if view.corner_count >= MIN_TARGET_CORNERS]
 
 
 def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, int], grid_shape: tuple[int, int],

@@ -304,15 +304,24 @@ def look_alike(a: AcceptedView, b: AcceptedView, settings: SelectorSettings, dia
 def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettings, diagonal_px: float) -> list[int]:
     """A group number per frame: frames that look alike (transitively, in order) share one.
 
-    Frames without a pose (None) are a group of their own.
+    Each frame joins the group of the first earlier frame it looks alike (`look_alike`, tested
+    for all pairs at once: a final solve has hundreds of frames). Frames without a pose (None)
+    are a group of their own.
     """
+    n, s = len(looks), settings
+    valid = np.array([v is not None for v in looks], bool)
+    known = [v if v is not None else AcceptedView(-1, np.zeros(2), 0.0, 0.0, 0.0) for v in looks]
+    centre = np.array([v.centre_px for v in known], np.float64).reshape(n, 2)
+    footprint, tilt_x, tilt_y = (np.array([getattr(v, name) for v in known], np.float64)
+                                 for name in ("footprint", "tilt_x_deg", "tilt_y_deg"))
+    # alike[j, i]: earlier frame j (the "a" of look_alike) and frame i
+    alike = (np.linalg.norm(centre[:, None, :] - centre[None, :, :], axis=2) < s.duplicate_centre * diagonal_px) \
+        & (np.abs(footprint[:, None] - footprint[None, :]) < s.duplicate_footprint * np.maximum(footprint, 1e-6)[:, None]) \
+        & (np.abs(tilt_x[:, None] - tilt_x[None, :]) < s.duplicate_tilt_deg) \
+        & (np.abs(tilt_y[:, None] - tilt_y[None, :]) < s.duplicate_tilt_deg) \
+        & valid[:, None] & valid[None, :]
     groups: list[int] = []
-    for i, here in enumerate(looks):
-        group = i
-        if here is not None:
-            for j in range(i):
-                if looks[j] is not None and look_alike(looks[j], here, settings, diagonal_px):  # type: ignore[arg-type]
-                    group = groups[j]
-                    break
-        groups.append(group)
+    for i in range(n):
+        earlier = np.flatnonzero(alike[:i, i])
+        groups.append(groups[int(earlier[0])] if earlier.size else i)
     return groups

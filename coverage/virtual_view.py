@@ -22,6 +22,7 @@ A ChArUco corner is found when both markers beside it are (OpenCV's `minMarkers`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -117,20 +118,35 @@ def seen_in_image(camera: CameraModel, points_cam: np.ndarray, margin_px: float 
 
 def virtual_view(camera: CameraModel, board: BoardGeometry, rvec: np.ndarray, tvec: np.ndarray) -> VirtualView:
     """The detectable corners of the board at T_cam_board (`rvec` (3,), `tvec` (3,) metres)."""
-    R, t = pose_matrix(rvec), np.asarray(tvec, np.float64).reshape(3)
-    M = board.marker_corners_m.shape[0]
-    pts = np.concatenate([board.marker_corners_m.reshape(-1, 3), board.marker_mids_m.reshape(-1, 3),
-                          board.corners_m, board.outline_m]) @ R.T + t
-    px, seen = seen_in_image(camera, pts, BORDER_MARGIN_PX)
-    quad, quad_seen = px[: 4 * M].reshape(M, 4, 2), seen[: 4 * M].reshape(M, 4)
-    mids, mids_seen = px[4 * M : 8 * M].reshape(M, 4, 2), seen[4 * M : 8 * M].reshape(M, 4)
-    n = board.corners_m.shape[0]
-    corner_px, corner_seen = px[8 * M : 8 * M + n], seen[8 * M : 8 * M + n]
-    outline_px = px[8 * M + n :]
+    return virtual_views(camera, board, [(rvec, tvec)])[0]
+
+
+def virtual_views(camera: CameraModel, board: BoardGeometry, poses: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[VirtualView]:
+    """`virtual_view` of each (rvec, tvec), projected in one batch (the candidates are hundreds of poses)."""
+    if not poses:
+        return []
+    R = np.stack([pose_matrix(rvec) for rvec, _t in poses])  # (K, 3, 3)
+    t = np.stack([np.asarray(tvec, np.float64).reshape(3) for _r, tvec in poses])  # (K, 3)
+    M, n = board.marker_corners_m.shape[0], board.corners_m.shape[0]
+    local = np.concatenate([board.marker_corners_m.reshape(-1, 3), board.marker_mids_m.reshape(-1, 3),
+                            board.corners_m, board.outline_m])  # (Q, 3)
+    pts = np.einsum("qj,kij->kqi", local, R) + t[:, None, :]  # (K, Q, 3) in the camera frame
+    px, seen = seen_in_image(camera, pts.reshape(-1, 3), BORDER_MARGIN_PX)
+    K = len(poses)
+    px, seen = px.reshape(K, -1, 2), seen.reshape(K, -1)
+    quad, quad_seen = px[:, : 4 * M].reshape(K, M, 4, 2), seen[:, : 4 * M].reshape(K, M, 4)
+    mids, mids_seen = px[:, 4 * M : 8 * M].reshape(K, M, 4, 2), seen[:, 4 * M : 8 * M].reshape(K, M, 4)
+    corner_px, corner_seen = px[:, 8 * M : 8 * M + n], seen[:, 8 * M : 8 * M + n]
+    outline_px = px[:, 8 * M + n :]
     with np.errstate(invalid="ignore"):
-        sides = np.linalg.norm(np.roll(quad, -1, axis=1) - quad, axis=2)  # (M, 4)
-        bow = np.linalg.norm(mids - 0.5 * (quad + np.roll(quad, -1, axis=1)), axis=2) / np.maximum(sides, 1e-9)
-        readable = quad_seen.all(1) & mids_seen.all(1) & (sides.min(1) >= board.min_marker_px) & (bow.max(1) <= MAX_SIDE_BOW)
-    found = corner_seen & readable[board.corner_markers].all(axis=1)
-    ids = np.nonzero(found)[0].astype(np.int32)
-    return VirtualView(np.asarray(rvec, np.float64).reshape(3), t, ids, board.corners_m[ids], corner_px[ids], outline_px)
+        following = np.roll(quad, -1, axis=2)
+        sides = np.linalg.norm(following - quad, axis=3)  # (K, M, 4)
+        bow = np.linalg.norm(mids - 0.5 * (quad + following), axis=3) / np.maximum(sides, 1e-9)
+        readable = quad_seen.all(2) & mids_seen.all(2) & (sides.min(2) >= board.min_marker_px) & (bow.max(2) <= MAX_SIDE_BOW)
+    found = corner_seen & readable[:, board.corner_markers].all(axis=2)  # (K, n)
+    views = []
+    for k, (rvec, _t) in enumerate(poses):
+        ids = np.nonzero(found[k])[0].astype(np.int32)
+        views.append(VirtualView(np.asarray(rvec, np.float64).reshape(3), t[k], ids, board.corners_m[ids],
+                                 corner_px[k][ids], outline_px[k]))
+    return views

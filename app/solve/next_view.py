@@ -25,6 +25,7 @@ from calibcoach.app.solve.uncertainty import (
     covariance_from_information,
     information_gain,
     schur_update,
+    schur_updates,
     view_jacobian,
 )
 from calibcoach.coverage.candidates import CandidatePose
@@ -66,6 +67,15 @@ def error_cut(information: np.ndarray, weight: np.ndarray, J_intr: np.ndarray, J
     return S_new, float(max(0.0, 1.0 - np.sqrt(max(after, 0.0) / before)))
 
 
+def error_cuts(information: np.ndarray, weight: np.ndarray, jacobians: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[float]:
+    """`error_cut` of each view's (J_intr, J_pose) joining S on its own, batched (ranking hundreds of candidates)."""
+    before = float(np.sum(weight * covariance_from_information(information)))
+    after = np.sum(weight * covariance_from_information(schur_updates(information, jacobians)), axis=(-2, -1))
+    if not before > 0:
+        return [0.0] * len(jacobians)
+    return [float(max(0.0, 1.0 - np.sqrt(max(a, 0.0) / before))) if np.isfinite(a) else 0.0 for a in after]
+
+
 def detection_of(candidate: CandidatePose) -> Detection:
     """The detection a frame at the candidate pose would give (its virtual view's corners)."""
     v = candidate.view
@@ -101,18 +111,16 @@ def rank_poses(
 
     Ties are broken by the candidate order (position, tilt, range), so the ranking is reproducible.
     """
-    before = float(np.sum(weight * covariance_from_information(information))) if use_error else 0.0
     deficit = 1.0 - coverage.completeness()
+    considered = [c for c in candidates if c.key not in excluded]
+    cuts = [0.0] * len(considered)
+    if use_error:
+        jacobians = [view_jacobian(camera, c.view.object_points_m, c.view.rvec, c.view.tvec) for c in considered]
+        projectable = [bool(np.all(np.isfinite(Ji)) and np.all(np.isfinite(Jp))) for Ji, Jp in jacobians]
+        considered = [c for c, ok in zip(considered, projectable, strict=True) if ok]
+        cuts = error_cuts(information, weight, [j for j, ok in zip(jacobians, projectable, strict=True) if ok])
     ranked: list[RankedPose] = []
-    for cand in candidates:
-        if cand.key in excluded:
-            continue
-        cut = 0.0
-        if use_error:
-            J_intr, J_pose = view_jacobian(camera, cand.view.object_points_m, cand.view.rvec, cand.view.tvec)
-            if not (np.all(np.isfinite(J_intr)) and np.all(np.isfinite(J_pose))):
-                continue
-            _, cut = error_cut(information, weight, J_intr, J_pose, before)
+    for cand, cut in zip(considered, cuts, strict=True):
         gain = 0.0
         if deficit > 1e-3:
             gain = coverage.gain(coverage.contribution(detection_of(cand), pose_of(cand, camera.image_size)))

@@ -104,11 +104,20 @@ def schur_update(information: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray
     Returns:
         (P, P) float64 the new S.
     """
-    B = J_intr.T @ J_pose  # (P, 6)
-    C = J_pose.T @ J_pose  # (6, 6)
+    return schur_updates(information, [(J_intr, J_pose)])[0]
+
+
+def schur_updates(information: np.ndarray, jacobians: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """`schur_update` of one S with each of K views on its own: (K, P, P), the pseudo-inverses batched."""
+    P = information.shape[0]
+    if not jacobians:
+        return np.zeros((0, P, P))
+    A = np.stack([J_intr.T @ J_intr for J_intr, _ in jacobians])  # (K, P, P)
+    B = np.stack([J_intr.T @ J_pose for J_intr, J_pose in jacobians])  # (K, P, 6)
+    C = np.stack([J_pose.T @ J_pose for _, J_pose in jacobians])  # (K, 6, 6)
     # pinv: a view with < 3 corners has a singular pose block; its rows then add only what they fix.
-    S = information + J_intr.T @ J_intr - B @ np.linalg.pinv(C, rcond=1e-12, hermitian=True) @ B.T
-    return 0.5 * (S + S.T)
+    S = information + A - B @ np.linalg.pinv(C, rcond=1e-12, hermitian=True) @ np.swapaxes(B, -1, -2)
+    return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
 def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:
@@ -137,13 +146,13 @@ def covariance_from_information(information: np.ndarray) -> np.ndarray:
     on raw eigenvalues would clip real directions); scaled eigenvalues below 1e-12 of the largest are
     raised to it, which turns an unobserved direction into a huge variance instead of NaN or < 0.
     """
-    S = np.asarray(information, np.float64)
-    d = np.sqrt(np.clip(np.diag(S), 0, None))
+    S = np.asarray(information, np.float64)  # (P, P), or a stack (..., P, P) inverted one by one
+    d = np.sqrt(np.clip(np.diagonal(S, axis1=-2, axis2=-1), 0, None))
     d = np.where(d > 0, d, 1.0)  # an unobserved parameter keeps scale 1 and gets the floor below
-    w, V = np.linalg.eigh(S / d[:, None] / d[None, :])
-    w = np.maximum(w, max(float(w.max()), 1e-300) * _EIGEN_FLOOR)
-    inv = (V / w) @ V.T
-    return inv / d[:, None] / d[None, :]
+    w, V = np.linalg.eigh(S / d[..., :, None] / d[..., None, :])
+    w = np.maximum(w, np.maximum(w.max(axis=-1, keepdims=True), 1e-300) * _EIGEN_FLOOR)
+    inv = (V / w[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return inv / d[..., :, None] / d[..., None, :]
 
 
 def intrinsic_covariance(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray, *, sigma_px: float) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from calibcoach.app.replay import detected_frames, run_replay
-from calibcoach.app.scan import REDETECT_EVERY, HeldFrameScan
+from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
@@ -100,7 +100,7 @@ def test_a_fast_transit_of_footage_is_sampled_and_never_used(recordings_dir: Pat
     transit = [s.frame.index for s in seen if s.in_transit]
     assert transit == list(range(10, 22))  # every frame of the sweep, none of the holds
     detected_in_transit = [s.frame.index for s in seen if s.in_transit and not s.skipped]
-    assert detected_in_transit == [i for i in transit if i % 4 == 0]  # every 4th is detected, the rest skipped
+    assert detected_in_transit == [i for i in transit if i % _TRANSIT_SAMPLE == 0] == [16]  # every 8th is detected, the rest skipped
     assert scan.skipped == len(transit) - len(detected_in_transit)
     # the same frames are in transit when every frame is detected (--every-frame), so both reject them alike
     dense = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(spec), track=False))
