@@ -20,6 +20,7 @@ from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSett
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.redetect import RedetectionCounts
+from calibcoach.coverage.select import board_motion_px
 from calibcoach.drivers.base import Frame, FrameSource
 from calibcoach.drivers.errors import SourceError
 
@@ -117,7 +118,9 @@ class _Hold:
     before: int  # the fully detected frame before them
     after: int | None  # ... and after them (None until it comes)
     repeats: list[tuple[Frame, Detection, float]]  # (frame, tracked detection, shift since the frame before, px)
+    speeds: list[float | None]  # each repeat's median corner speed since the frame before, px/s (None: unknown)
     shift_after: float = float("inf")  # shift from the last repeat to the frame after it, px
+    speed_after: float | None = None  # ... and its median corner speed, px/s
 
 
 class _Feeder:
@@ -140,6 +143,7 @@ class _Feeder:
         self._holds: deque[_Hold] = deque()
         self._usable: dict[int, str] = {}  # fully detected frame -> "usable", "moving" or "unusable"
         self._last_full: Seen | None = None
+        self._last_seen: Seen | None = None  # the frame before the one being fed
 
     @property
     def session(self) -> CalibrationSession | None:
@@ -150,13 +154,14 @@ class _Feeder:
         try:
             for seen in stream:
                 self.read += 1
+                before, self._last_seen = self._last_seen, seen
                 if seen.skipped and self.session is not None:
                     self.session.add_held_repeats([(seen.frame, seen.detection)], usable=False)  # counted as seen
                     continue
                 if seen.tracked_from is not None and self._last_full is not None and not seen.in_transit:
-                    self._track(seen)
+                    self._track(seen, before)
                     continue
-                self._close_hold(seen)
+                self._close_hold(seen, before)
                 if self.assistant is None:
                     self.assistant = Assistant(self.settle.spec, seen.frame.image_size, settings=self.settings,
                                                locked_controls=self.locked_controls, focus_events=self.focus_events,
@@ -174,18 +179,20 @@ class _Feeder:
                 close()
             self._settle_holds(final=True)
 
-    def _track(self, seen: Seen) -> None:
+    def _track(self, seen: Seen, before: Seen | None) -> None:
         assert self._last_full is not None
         if not self._holds or self._holds[-1].after is not None:
-            self._holds.append(_Hold(self._last_full.frame.index, None, []))
+            self._holds.append(_Hold(self._last_full.frame.index, None, [], []))
         self._holds[-1].repeats.append((seen.frame, seen.detection, float(seen.shift_px or 0.0)))
+        self._holds[-1].speeds.append(_speed_px_s(before, seen))
 
-    def _close_hold(self, seen: Seen) -> None:
+    def _close_hold(self, seen: Seen, before: Seen | None) -> None:
         """A fully detected frame ends the hold being tracked (if any)."""
         if self._holds and self._holds[-1].after is None:
             hold = self._holds[-1]
             hold.after = seen.frame.index
             hold.shift_after = board_shift_px(hold.repeats[-1][1], seen.detection)
+            hold.speed_after = _speed_px_s(before, seen)
         self._last_full = seen
 
     def _judged(self, step: Step | None) -> bool:
@@ -216,9 +223,15 @@ class _Feeder:
             # frames were rejected only for moving (a move's first or last frame), the tracked
             # frames' own stillness decides.
             usable = "usable" in judged or all(j in ("moving", None) for j in judged)
-            # Only the motion bound, never the edges: on a dim 720p video (48 ms exposures) letting
-            # tracked frames that moved 1.5-3 px in by their edges doubled the true error.
+            # A repeat between which and its neighbours the board moved at most the smear limit cannot
+            # have smeared more; one that moved more is judged by its own image, as every frame is
+            # with --every-frame (on a 104 deg 1080p lens at 20 fps, a steady hand's tremor moves the
+            # board's outer corners 2-4 px a frame: the bound alone kept half the still frames).
             still = _still_repeats(hold, self.settings.selector.max_smear_px)
+            speeds = _repeat_speeds(hold)
+            if usable:
+                still = [ok or session.sharp_enough(f, d, motion_px_s=v)
+                         for (f, d, _s), ok, v in zip(hold.repeats, still, speeds, strict=True)]
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable)
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
 
@@ -232,3 +245,19 @@ def _still_repeats(hold: _Hold, max_move_px: float) -> list[bool]:
     into = [shift for _f, _d, shift in hold.repeats]
     out_of = into[1:] + [hold.shift_after]
     return [a <= max_move_px and b <= max_move_px for a, b in zip(into, out_of, strict=True)]
+
+
+def _speed_px_s(before: Seen | None, seen: Seen) -> float | None:
+    """Median corner speed from the frame before to this one, px/s (as the session measures it), or None."""
+    if before is None:
+        return None
+    moved = board_motion_px(before.detection, seen.detection)
+    dt_s = abs(seen.frame.timestamp_ns - before.frame.timestamp_ns) / 1e9
+    return None if moved is None or dt_s <= 0 else moved / dt_s
+
+
+def _repeat_speeds(hold: _Hold) -> list[float | None]:
+    """The larger of each tracked frame's speeds into and out of it (None where neither is known)."""
+    out_of = hold.speeds[1:] + [hold.speed_after]
+    return [None if a is None and b is None else max(x for x in (a, b) if x is not None)
+            for a, b in zip(hold.speeds, out_of, strict=True)]

@@ -175,6 +175,38 @@ class FrameSelector:
             return min(s.max_blur_px, s.max_blur_ratio * float(np.median(self._blurs)))
         return s.max_blur_px
 
+    def unsharp(self, *, motion_px_s: float | None, blur_px: float | None, edges: EdgeBlur | None) -> Decision | None:
+        """Why the frame is not sharp enough for the final solve (smeared, moving, blurred), or None.
+
+        The stillness and blur part of `decide`, also asked of the frames a replay tracked through
+        a hold that moved more than the smear limit between frames (app/replay.py): their images,
+        not their motion, then decide, as they would with every frame detected.
+        """
+        s = self.settings
+        own = self.own_sharpness_px()
+        if motion_px_s is not None and motion_px_s > self._transit_limit:
+            return Decision(False, "moving", f"{motion_px_s:.0f} px/s: in transit (limit {self._transit_limit:.0f})",
+                            quality=0.0)
+        moving_hint = motion_px_s is not None and motion_px_s > self._speed_limit
+        if edges is not None:
+            along = edges.along_smear_px()
+            if along > s.max_smear_px and edges.along_widening() > s.min_smear_widening:
+                return Decision(False, "moving", f"smeared {along:.1f} px during the exposure, limit {s.max_smear_px:.1f}",
+                                quality=0.0)
+            if own is not None and moving_hint:  # a diagonal smear looks like defocus unless the board moved
+                diagonal = edges.diagonal_smear_px(own)
+                if diagonal > s.max_smear_px and edges.diagonal_widening(own) > s.min_smear_widening:
+                    return Decision(False, "moving", f"smeared {diagonal:.1f} px along a board diagonal, limit "
+                                    f"{s.max_smear_px:.1f} ({motion_px_s:.0f} px/s)", quality=0.0)
+        if moving_hint and (own is None or edges is None or not np.isfinite(edges.sharp_px)):
+            return Decision(False, "moving", f"{motion_px_s:.0f} px/s, limit {self._speed_limit:.0f} until this camera's "
+                            "own sharpness is known", quality=0.0)
+        blur_limit = self.blur_limit_px()
+        if blur_px is not None and blur_px > blur_limit:
+            return Decision(False, "blurred", f"edge blur {blur_px:.1f} px, limit {blur_limit:.1f}",
+                            quality=(blur_limit / blur_px) ** 2)
+        return None
+
     def decide(
         self,
         frame_index: int,
@@ -207,7 +239,6 @@ class FrameSelector:
             return gated, None
         if blur_px is not None and blur_px > s.max_blur_px:
             return Decision(False, "blurred", f"edge blur {blur_px:.1f} px, limit {s.max_blur_px:.1f}", quality=0.0), None
-        quality = 1.0
         if just_appeared:
             # The frame before showed no board: it is still being brought in, and a move's last frame
             # is smeared by the deceleration (0.4 px coherent corner shifts seen in simulation) while
@@ -215,28 +246,9 @@ class FrameSelector:
             return Decision(False, "moving", "board just came into view", quality=0.25), None
         if edges is not None and np.isfinite(edges.sharp_px) and len(self._blurs) < 3:
             self._seen_sharpness.append(float(edges.sharp_px))
-        own = self.own_sharpness_px()
-        if motion_px_s is not None and motion_px_s > self._transit_limit:
-            return Decision(False, "moving", f"{motion_px_s:.0f} px/s: in transit (limit {self._transit_limit:.0f})",
-                            quality=0.0), None
-        moving_hint = motion_px_s is not None and motion_px_s > self._speed_limit
-        if edges is not None:
-            along = edges.along_smear_px()
-            if along > s.max_smear_px and edges.along_widening() > s.min_smear_widening:
-                return Decision(False, "moving", f"smeared {along:.1f} px during the exposure, limit {s.max_smear_px:.1f}",
-                                quality=0.0), None
-            if own is not None and moving_hint:  # a diagonal smear looks like defocus unless the board moved
-                diagonal = edges.diagonal_smear_px(own)
-                if diagonal > s.max_smear_px and edges.diagonal_widening(own) > s.min_smear_widening:
-                    return Decision(False, "moving", f"smeared {diagonal:.1f} px along a board diagonal, limit "
-                                    f"{s.max_smear_px:.1f} ({motion_px_s:.0f} px/s)", quality=0.0), None
-        if moving_hint and (own is None or edges is None or not np.isfinite(edges.sharp_px)):
-            return Decision(False, "moving", f"{motion_px_s:.0f} px/s, limit {self._speed_limit:.0f} until this camera's "
-                            "own sharpness is known", quality=0.0), None
-        blur_limit = self.blur_limit_px()
-        if blur_px is not None and blur_px > blur_limit:
-            quality = min(quality, (blur_limit / blur_px) ** 2)
-            return Decision(False, "blurred", f"edge blur {blur_px:.1f} px, limit {blur_limit:.1f}", quality=quality), None
+        unsharp = self.unsharp(motion_px_s=motion_px_s, blur_px=blur_px, edges=edges)
+        if unsharp is not None:
+            return unsharp, None
         if len(self.accepted) >= s.max_frames:
             return Decision(False, "frame limit", f"{s.max_frames} frames kept already"), None
         contribution = self.coverage.contribution(detection, pose)

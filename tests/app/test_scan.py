@@ -140,6 +140,40 @@ def test_tracked_frames_of_usable_holds_join_the_final_solve(recordings_dir: Pat
     assert abs(result.calibration.rms_px / dense_result.calibration.rms_px - 1) < 0.1
 
 
+def _jittered_folder(recordings_dir: Path, folder: Path, views: list[int], hold: int, *, smear_px: int) -> Path:
+    """1080p holds whose board jumps 2 px every frame (a shaky hand at a short exposure: no smear
+    within it) or, with `smear_px`, whose frames between the first and last of each hold are also
+    smeared that far along the jump (the same jitter at a long exposure)."""
+    rng = np.random.default_rng(7)
+    smear = np.full((1, max(smear_px, 1)), 1.0 / max(smear_px, 1), np.float32)
+    greys: list[np.ndarray] = []
+    for view in views:
+        # at 1080p a 2 px jump stays below the scan's trackable thumbnail change (24 px cells)
+        grey = cv2.resize(_demo_grey(recordings_dir, view), (1920, 1080), interpolation=cv2.INTER_CUBIC)
+        frames = [_shifted(grey, 2.0 * (k % 2), 0.0, rng) for k in range(hold)]
+        if smear_px:
+            frames = [frames[0]] + [cv2.filter2D(f, -1, smear) for f in frames[1:-1]] + [frames[-1]]
+        greys += frames
+    return _write(folder, greys)
+
+
+def test_tracked_frames_that_moved_are_judged_by_their_own_image(recordings_dir: Path, tmp_path: Path) -> None:
+    # 2 px between frames is past the 1.5 px the board may smear, so it could have smeared; whether it
+    # did is read from each frame's edges, as --every-frame reads it (a 104 deg 1080p lens at 20 fps
+    # lost half of its still frames when the move alone decided). No motion gate: the edges alone decide.
+    settings = SessionSettings(selector=SelectorSettings(max_frames=6), stop_when_done=False, use_motion_gate=False)
+    views = [0, 30, 66, 114, 72, 102]
+    used = {}
+    for smear_px in (0, 5):
+        folder = _jittered_folder(recordings_dir, tmp_path / f"smear{smear_px}", views, 16, smear_px=smear_px)
+        session, stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
+        assert stats.tracked >= 60
+        result = session.finish()
+        used[smear_px] = [v.frame_index for v in result.calibration.views if v.frame_index % 16 not in (0, 15)]
+    assert len(used[0]) >= 60  # sharp despite the jumps: they average each pose's noise
+    assert used[5] == []  # smeared: never in the solve
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_what_is_tracked_does_not_depend_on_the_number_of_workers(recordings_dir: Path, tmp_path: Path, workers: int) -> None:
     folder = _held_folder(recordings_dir, tmp_path, [0, 30, 66], hold=12)

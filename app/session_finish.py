@@ -1,0 +1,270 @@
+"""The end of a calibration session: the final robust solve, model choice, uncertainty and verdict.
+
+`SessionFinish.finish()` is what `CalibrationSession` (app/session.py) runs once capture ends:
+it spends the unused frame budget on reserve frames (poses of their own first, then the repeats
+of every hold), chooses the lens model on the live budget's frames, solves robustly on all of
+them, counts each hold's look-alike frames for what they add to the covariance, maps the expected
+projection error and judges the result. It is a mixin: the state it reads (kept views, reserve,
+selector, incremental intrinsics) is the session's own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from calibcoach.app.session_types import SessionResult
+from calibcoach.app.solve.calibrate import solve
+from calibcoach.app.solve.model_choice import choose_model
+from calibcoach.app.solve.next_view import fill_from_reserve
+from calibcoach.app.solve.result import Calibration, ModelChoice, View
+from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
+from calibcoach.app.solve.uncertainty import covered_region_mask, marginal_information, projection_uncertainty
+from calibcoach.app.solve.verdict import error_target_px, judge
+from calibcoach.coverage.candidates import ranges_for
+from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
+from calibcoach.coverage.grid import CoverageMap
+from calibcoach.coverage.pose import estimate_pose
+from calibcoach.coverage.select import AcceptedView, accepted_view, look_alike, look_alike_groups
+from calibcoach.drivers.base import Frame
+from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.lens import CameraModel
+
+# Fewer kept frames than this and the live session has not solved yet (app/session.py solves from here on).
+MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
+
+if TYPE_CHECKING:
+    from calibcoach.app.session_types import SessionSettings
+    from calibcoach.coverage.board import BoardSpec
+    from calibcoach.coverage.pose import BoardPose
+    from calibcoach.coverage.select import FrameSelector
+    from calibcoach.coverage.virtual_view import BoardGeometry
+
+
+def view_detection(view: View) -> Detection:
+    """The detection a stored view was made from (without its markers)."""
+    return Detection(view.image_points_px.astype(np.float32), view.ids, view.object_points_m.astype(np.float32),
+                     np.zeros(0, np.int32))
+
+
+def frame_view(frame: Frame, detection: Detection) -> View:
+    """A detected frame as the solver takes it."""
+    return View(frame.index, frame.name, detection.ids.copy(), detection.corners_px.astype(np.float64),
+                detection.object_points_m.astype(np.float64), timestamp_ns=int(frame.timestamp_ns))
+
+
+
+
+class SessionFinish:
+    """`finish()` and its steps, mixed into `CalibrationSession`, whose state they use."""
+
+    # the session's state that the final solve reads (set in CalibrationSession.__init__)
+    settings: SessionSettings
+    board: BoardSpec
+    image_size: tuple[int, int]
+    geometry: BoardGeometry
+    camera: CameraModel
+    selector: FrameSelector
+    views: list[View]
+    working_model: str
+    frames_seen: int
+    stop_reason: str
+    focus_drift: str | None
+    drifted_ranges: list[tuple[int, int | None]]
+    look_alike_correlation: float
+    budget_fill: tuple[int, int]
+    _reserve: list[tuple[View, float]]
+    _repeats: list[View]
+    _information: np.ndarray | None
+    _error_weight: np.ndarray | None
+    _check_image: tuple[int, np.ndarray] | None
+    _samples: list[np.ndarray]
+
+    def _drifted(self, frame_index: int) -> bool:
+        """Taken at a drifted focus (see `CalibrationSession.stop_accepting`)."""
+        return any(start <= frame_index and (end is None or frame_index < end) for start, end in self.drifted_ranges)
+
+    def _pose(self, detection: Detection) -> BoardPose | None:
+        return estimate_pose(detection, self.camera, self.geometry.centre_m)
+
+    def finish(self, on_stage: Callable[[str], None] | None = None) -> SessionResult:
+        """Final robust solve, model choice, uncertainty map and verdict.
+
+        `on_stage(name)` is told as each stage begins ("frame budget", "model choice", "robust solve",
+        "uncertainty", "verdict": `progress.SOLVE_STAGES`), for a progress bar.
+        """
+        stage = on_stage or (lambda _name: None)
+        if self.drifted_ranges:  # taken at another focus: another camera
+            self.views = [v for v in self.views if not self._drifted(v.frame_index)]
+            self._reserve = [(v, q) for v, q in self._reserve if not self._drifted(v.frame_index)]
+        if len(self.views) < 3 and len(self.views) + len(self._reserve) >= 3:
+            # Too few distinct frames (a frontal-only capture, say): solve with the look-alikes anyway,
+            # so the verdict can say what is wrong with the data instead of refusing to look.
+            step = max(1, len(self._reserve) // 8)
+            taken = self._reserve[::step][: self.settings.selector.max_frames]
+            self.views = sorted(self.views + [v for v, _q in taken], key=lambda v: v.frame_index)
+            self._reserve = [r for r in self._reserve if not any(r is t for t in taken)]
+        if len(self.views) < 3:
+            raise self._not_enough_views_error()
+        stage("frame budget")
+        kept_live = list(self.views)
+        self._fill_budget()
+        stage("model choice")
+        if self.settings.model == "auto":
+            # On the frames the budget of the live selection holds (distinct poses, then repeats of every
+            # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
+            # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational
+            # lens was solved as a fisheye 0.7 px off on 2 of 5 renders; on all 400 the halves share poses.
+            budget = max(0, self.settings.selector.max_frames - len(self.views))
+            choice = choose_model(sorted(self.views + self._repeats[:budget], key=lambda v: v.frame_index), self.image_size)
+        else:
+            choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
+        initial = self.camera if self.camera.model == choice.chosen else None
+        distinct = self.views
+        self.views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)
+        self._repeats = []
+        stage("robust solve")
+        # cv2.fisheye.calibrate re-initialises every view's pose at each step and asserts when one turns
+        # degenerate (robust.solve_kept leaves out one such frame, not several); among hundreds of
+        # frames that happened on 1 of 5 fisheye renders. Then the distinct poses alone, then the frames
+        # kept live (which the incremental solves took), are solved instead.
+        offered = len(self.views)
+        fallbacks = [v for v in (distinct, kept_live) if 3 <= len(v) < len(self.views)]
+        while True:
+            try:
+                solved = robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial)
+                break
+            except CalibrationError:
+                if not fallbacks:
+                    raise
+                self.views = fallbacks.pop(0)
+        calibration = self._with_look_alikes_weighted(solved)
+        corner_sets = [v.image_points_px for v in calibration.views]
+        # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve
+        stage("uncertainty")
+        uncertainty = projection_uncertainty(
+            calibration.camera, calibration.intrinsic_covariance,
+            covered_mask_fn=lambda gx, gy: covered_region_mask(self.image_size, corner_sets, (gx.size, gy.size)),
+        )
+        stage("verdict")
+        coverage = self._final_coverage(calibration)
+        noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
+                               n_params=len(calibration.intrinsic_names), n_views=len(calibration.views))
+        verdict = judge(
+            calibration,
+            coverage_completeness=coverage.completeness(),
+            coverage_missing=coverage.summary()["missing"],  # type: ignore[arg-type]
+            uncertainty=uncertainty,
+            image_size=self.image_size,
+            noise_px=noise,
+            target_px=self.settings.error_target_px,
+        )
+        if len(self.views) < offered:
+            verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
+                              f"{offered} usable frames; solved on {len(self.views)} of them instead."))
+        if self.focus_drift is not None:
+            verdict = replace(verdict, reasons=(*verdict.reasons, f"Focus drifted ({self.focus_drift}): frames taken after "
+                              "it were left out; lock focus at the recorded value and continue with --resume to add more."))
+        return SessionResult(
+            calibration=calibration,
+            model_choice=choice,
+            uncertainty=uncertainty,
+            verdict=verdict,
+            coverage=coverage,
+            board=self.board,
+            rejections=dict(self.selector.counts),
+            frames_seen=self.frames_seen,
+            check_image=None if self._check_image is None else self._check_image[1],
+            noise_px=noise,
+            target_px=self.settings.error_target_px or error_target_px(noise, self.image_size),
+            stop_reason=self.stop_reason,
+        )
+
+    def _fill_budget(self) -> None:
+        """Spend the unused frame budget on distinct reserve frames that shrink the uncertainty most.
+
+        During capture a frame must cut E by half what the guidance's target would, which keeps the
+        guidance honest; frames the live selection passed over that show a pose of their own (not a
+        look-alike of a kept or added frame) still help the final solve, greedily by information
+        gain (`next_view.fill_from_reserve`).
+        """
+        budget = max(self.settings.solve_frames, self.settings.selector.max_frames) - len(self.views)
+        if budget <= 0 or not self._reserve:
+            return
+        if self._information is None or len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:  # no solve yet
+            try:
+                raw = solve(self.views, self.image_size, self.working_model)
+            except CalibrationError:
+                return
+            self.camera = raw.camera
+            self._information = marginal_information(raw.camera, self.views, raw.rvecs, raw.tvecs)
+        looks: dict[int, AcceptedView | None] = {}
+
+        def look(view: View) -> AcceptedView | None:
+            if view.frame_index not in looks:
+                det = view_detection(view)
+                pose = self._pose(det)
+                looks[view.frame_index] = None if pose is None else accepted_view(view.frame_index, det, pose)
+            return looks[view.frame_index]
+
+        diagonal = float(np.hypot(*self.image_size))
+
+        def alike(a: View, b: View) -> bool:
+            la, lb = look(a), look(b)
+            return la is not None and lb is not None and look_alike(la, lb, self.settings.selector, diagonal)
+
+        distinct, repeats = fill_from_reserve(self.camera, self._information, self._error_weight, self._reserve, budget,
+                                              alike=alike, kept=self.views)
+        self.budget_fill = (len(distinct) + len(repeats), len(self._reserve))
+        self.views = sorted(self.views + distinct, key=lambda v: v.frame_index)
+        self._repeats = repeats
+
+    def _look_alike_groups(self, views: Sequence[View], camera: CameraModel) -> list[int]:
+        """Group number per view: frames showing the board at nearly the same place, size and tilt."""
+        looks = []
+        for view in views:
+            det = view_detection(view)
+            pose = estimate_pose(det, camera, self.geometry.centre_m)
+            looks.append(None if pose is None else accepted_view(view.frame_index, det, pose))
+        return look_alike_groups(looks, self.settings.selector, float(np.hypot(*self.image_size)))
+
+    def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:
+        """The final covariance with each hold's look-alike frames counted for what they add.
+
+        See `robust.with_look_alikes_weighted`; the groups are the selector's look-alike test
+        on the final solve's poses.
+        """
+        weighted, self.look_alike_correlation = with_look_alikes_weighted(
+            calibration, self._look_alike_groups(calibration.views, calibration.camera))
+        return weighted
+
+    def _final_coverage(self, calibration: Calibration) -> CoverageMap:
+        """The coverage map again, with tilts and ranges from the final solve's intrinsics."""
+        live = self.selector.coverage
+        coverage = CoverageMap(self.image_size, live.requirements, ranges=ranges_for(calibration.camera, self.geometry),
+                               reachable=live.reachable)
+        for view in calibration.views:
+            det = view_detection(view)
+            pose = estimate_pose(det, calibration.camera, self.geometry.centre_m)
+            coverage.add(coverage.contribution(det, pose), pose.footprint if pose else None)
+        return coverage
+
+    def _not_enough_views_error(self) -> CalibrationError:
+        counts = {k: v for k, v in self.selector.counts.items() if v and k != "accepted"}
+        breakdown = ", ".join(f"{v} {k}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or "no frames at all"
+        if self.frames_seen and counts.get("no board", 0) == self.frames_seen:
+            mismatch = diagnose_board_mismatch(self.board, self._samples)
+            if mismatch is not None:
+                return mismatch  # type: ignore[return-value]
+            return CalibrationError(
+                f"no board corners were found in any of the {self.frames_seen} frames, and no ArUco markers of any "
+                f"dictionary either; check that the images show the board ({self.board.describe()}), in focus and lit "
+                "(a plain chessboard has no markers: print a ChArUco board with `calibcoach board --out board.pdf`)"
+            )
+        return CalibrationError(
+            f"only {len(self.views)} of {self.frames_seen} frames were usable ({breakdown}); a calibration needs at least 3 "
+            "(and about 20 diverse ones to be trustworthy): capture the board still, close enough for >= 6 corners"
+        )
