@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from calibcoach.coverage.detector import TRACK_MAX_SHIFT_PX, CharucoBoardDetector, Detection
-from calibcoach.drivers.base import Frame
+from calibcoach.drivers.base import Frame, frames_ahead
 
 # Every 15th frame (0.5 s at 30 fps) is detected in full: a hold of a second is judged by the
 # session twice, and the rest of it is tracked.
@@ -108,13 +108,14 @@ class HeldFrameScan:
     """
 
     def __init__(self, frames: Iterable[Frame], make_detector: Callable[[], CharucoBoardDetector], *,
-                 workers: int = 2, lookahead: int = 8, track: bool = True, judge_transit: bool = True) -> None:
+                 workers: int = 2, lookahead: int | None = None, track: bool = True, judge_transit: bool = True) -> None:
         self._frames = iter(frames)
         self._track = track  # False: every frame detected in full (--every-frame, recordings)
         self._judge_transit = judge_transit  # False: no frame is marked in transit (a recording replays live decisions)
         self._make_detector = make_detector
         self._local = threading.local()
-        self._workers, self._lookahead = max(1, int(workers)), max(2, int(lookahead))
+        # frames planned (their detections started) ahead of the one being seen; None: `frames_ahead` of the first
+        self._workers, self._lookahead = max(1, int(workers)), None if lookahead is None else max(2, int(lookahead))
         self.tracked = 0
         self.repeated = 0
         self.detected = 0
@@ -137,6 +138,8 @@ class HeldFrameScan:
             newest_thumb, newest_change = np.zeros(0, np.float32), float("inf")
             try:
                 for frame in self._frames:
+                    if self._lookahead is None:
+                        self._lookahead = frames_ahead(frame.image.nbytes)
                     thumb = thumbnail(frame.grey())
                     change_in = float("inf") if newest is None else scene_change(newest_thumb, thumb)
                     if newest is not None:

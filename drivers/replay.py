@@ -20,7 +20,7 @@ from types import MappingProxyType
 import cv2
 import numpy as np
 
-from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo
+from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.recording import SESSION_FILE, read_session
 
@@ -200,6 +200,7 @@ class ImageFolderSource(FrameSource):
                 "check that they are complete image files, not damaged or still being copied"
             )
         self._image_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) pixels
+        self._frame_bytes = int(first.nbytes)
 
     @property
     def info(self) -> SourceInfo:
@@ -211,7 +212,7 @@ class ImageFolderSource(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         self.skipped = []
-        for index, image in enumerate(_decoded_ahead(self._files)):
+        for index, image in enumerate(_decoded_ahead(self._files, ahead=frames_ahead(self._frame_bytes))):
             item = self._frame_or_skip(index, image)
             if isinstance(item, SkippedFrame):
                 self.skipped.append(item)
@@ -279,7 +280,7 @@ class RecordingSource(FrameSource):
         self.skipped = list(self._contents.problems)
         paths = [self.path / entry["file"] for entry in self._contents.entries]
         # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3).
-        for entry, path, image in zip(self._contents.entries, paths, _decoded_ahead(paths, cv2.IMREAD_UNCHANGED), strict=True):
+        for entry, path, image in zip(self._contents.entries, paths, _decoded_ahead(paths, cv2.IMREAD_UNCHANGED, ahead=frames_ahead(3 * self._image_size[0] * self._image_size[1])), strict=True):
             if image is None:
                 self.skipped.append(SkippedFrame(entry["index"], path.name, _unreadable_reason(path)))
                 continue
@@ -303,11 +304,10 @@ def _natural_key(path: Path) -> tuple[tuple[tuple[int, int | str], ...], str]:
 
 
 _DECODE_WORKERS = 2  # PNG/JPEG decoding releases the GIL; a 720p PNG takes ~9 ms, as long as detection
-_DECODE_AHEAD = 8  # frames decoded ahead of the consumer (~7 MB at 720p grey)
 
 
-def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS) -> Iterator[np.ndarray | None]:
-    """`_read_image` of every path, in order, decoded on worker threads a few frames ahead.
+def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS, *, ahead: int = 8) -> Iterator[np.ndarray | None]:
+    """`_read_image` of every path, in order, decoded on worker threads `ahead` frames ahead.
 
     Replay is otherwise bound by decoding on the consumer's thread (half of a 784-frame replay's
     time was imdecode); the consumer never waits once the pipeline is full.
@@ -317,7 +317,7 @@ def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS) -> Iterator[np
         try:
             for path in paths:
                 pending.append(pool.submit(_read_image, path, flags))
-                if len(pending) >= _DECODE_AHEAD:
+                if len(pending) >= ahead:
                     yield pending.popleft().result()
             while pending:
                 yield pending.popleft().result()
