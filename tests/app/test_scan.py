@@ -182,3 +182,26 @@ def test_what_is_tracked_does_not_depend_on_the_number_of_workers(recordings_dir
         seen = list(detected_frames(ImageFolderSource(folder), BoardSpec(), workers=w))
         runs.append([(s.frame.index, s.tracked_from, s.in_transit, s.detection.corners_px.tobytes()) for s in seen])
     assert runs[0] == runs[1]
+
+
+def test_a_final_solve_that_cannot_start_with_the_repeats_falls_back_and_says_so(
+        recordings_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # cv2.fisheye.calibrate sometimes cannot initialise among hundreds of frames (1 of 5 fisheye
+    # renders); such a failure is injected here for any solve that holds the repeats.
+    from calibcoach.app import session_finish
+    from calibcoach.drivers.errors import CalibrationError
+
+    folder = _held_folder(recordings_dir, tmp_path, [0, 30, 66, 114, 72, 102], hold=16)
+    settings = SessionSettings(selector=SelectorSettings(max_frames=6), stop_when_done=False)
+    session, _stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
+    real = session_finish.robust_calibrate
+
+    def cannot_start_with_repeats(views, *args, **kwargs):
+        if len(views) > 20:
+            raise CalibrationError("the fisheye solve cannot initialise a view")
+        return real(views, *args, **kwargs)
+
+    monkeypatch.setattr(session_finish, "robust_calibrate", cannot_start_with_repeats)
+    result = session.finish()
+    assert 3 <= len(result.calibration.views) <= 20  # the distinct poses (or the live-kept frames)
+    assert any("could not start with all" in reason for reason in result.verdict.reasons)
