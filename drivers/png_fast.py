@@ -1,0 +1,81 @@
+"""A faster decoder for the PNGs OpenCV writes: 8-bit grey or RGB, every row "Sub"-filtered.
+
+A replay decodes every frame of a folder, and decoding was ~45% of its time: libpng (through
+`cv2.imdecode`) takes ~4.9 ms for a 720p grey PNG, of which ~2.7 ms is zlib 1.2's inflate. ISA-L's
+inflate (`isal`) does the same in ~1.1 ms, and OpenCV's PNG encoder filters every row with "Sub"
+(each byte stored as the difference to the byte one pixel to its left), which undoes as a
+prefix sum along the row, vectorised here (~1.2 ms). Together ~2.9 ms, and both halves release
+the GIL, so two decode threads run in parallel. The zlib stream's Adler-32 checksum still
+guards the pixels; a damaged file fails to inflate and is left to OpenCV to judge.
+
+Anything else -- 16-bit, palette, alpha or transparency, interlaced, rows with the Up, Average or
+Paeth filters (as other encoders write them) -- returns None, and the caller decodes with OpenCV.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import cv2
+import numpy as np
+
+try:  # a dependency (pyproject); without it zlib's own inflate is used, no faster than libpng's
+    from isal import isal_zlib as _inflater
+except ImportError:  # pragma: no cover - isal has wheels for every platform calibcoach runs on
+    _inflater = zlib
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_GREY, _RGB = 0, 2  # PNG colour types handled here
+_NONE, _SUB = 0, 1  # PNG row filters handled here
+_BAIL_CHUNKS = {b"tRNS", b"PLTE"}  # transparency or a palette: OpenCV's output differs, let it decode
+
+
+def decode_png(data: bytes | memoryview) -> np.ndarray | None:
+    """(H, W) uint8 grey or (H, W, 3) uint8 BGR, exactly as `cv2.imdecode` gives it; None when not handled here."""
+    view = memoryview(data)
+    if bytes(view[:8]) != PNG_SIGNATURE:
+        return None
+    header, idat = None, []
+    pos = 8
+    while pos + 8 <= len(view):
+        length, kind = struct.unpack_from(">I4s", view, pos)
+        body = view[pos + 8 : pos + 8 + length]
+        if kind == b"IHDR":
+            header = struct.unpack_from(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat.append(body)
+        elif kind == b"IEND":
+            break
+        elif kind in _BAIL_CHUNKS:
+            return None
+        pos += 12 + length
+    if header is None or not idat:
+        return None
+    width, height, depth, colour, _compression, _filter_method, interlace = header
+    if depth != 8 or interlace != 0 or colour not in (_GREY, _RGB) or width == 0 or height == 0:
+        return None
+    channels = 1 if colour == _GREY else 3
+    try:
+        raw = np.frombuffer(_inflater.decompress(b"".join(idat)), np.uint8)
+    except (_inflater.error, zlib.error, ValueError):  # isal raises its own IsalError
+        return None
+    stride = width * channels + 1
+    if raw.size < height * stride:
+        return None
+    rows = raw[: height * stride].reshape(height, stride)
+    filters = rows[:, 0]
+    if np.any(filters > _SUB):
+        return None
+    pixels = rows[:, 1:]
+    # Sub: each byte adds the reconstructed byte one pixel (`channels` bytes) to its left, mod 256
+    if channels == 1:  # a prefix sum down the columns of the transpose runs ~1.5x faster than along rows
+        image = cv2.transpose(np.cumsum(cv2.transpose(np.ascontiguousarray(pixels)), axis=0, dtype=np.uint8))
+    else:
+        image = np.cumsum(pixels.reshape(height, width, channels), axis=1, dtype=np.uint8).reshape(height, -1)
+    unfiltered = filters == _NONE
+    if unfiltered.any():
+        image[unfiltered] = pixels[unfiltered]
+    if channels == 1:
+        return image
+    return np.ascontiguousarray(image.reshape(height, width, 3)[:, :, ::-1])  # RGB as stored -> BGR as OpenCV gives it

@@ -1,0 +1,91 @@
+"""The fast PNG decoder gives OpenCV's pixels exactly, declines what it does not handle, and a
+folder of OpenCV-written PNGs replays through it with the frames OpenCV would give."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.drivers.png_fast import decode_png
+from calibcoach.drivers.replay import ImageFolderSource
+
+
+def _cv(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+
+
+def _png(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+
+def _handmade(pixels: np.ndarray, filter_type: int) -> bytes:
+    """An 8-bit grey PNG whose rows all carry `filter_type` (the bytes stored raw: a wrong filter decodes wrong)."""
+    h, w = pixels.shape
+    rows = np.concatenate([np.full((h, 1), filter_type, np.uint8), pixels], axis=1)
+    return (b"\x89PNG\r\n\x1a\n" + _png(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + _png(b"IDAT", zlib.compress(rows.tobytes())) + _png(b"IEND", b""))
+
+
+@pytest.mark.parametrize("shape", [(720, 1280), (37, 53), (1, 1), (45, 80, 3), (3, 2, 3)])
+def test_opencv_written_pngs_decode_to_opencvs_pixels(shape: tuple[int, ...]) -> None:
+    rng = np.random.default_rng(sum(shape))
+    image = rng.integers(0, 256, shape, dtype=np.uint8)
+    image[: shape[0] // 2] //= 7  # smooth and noisy parts, so the encoder's choices vary
+    ok, encoded = cv2.imencode(".png", image)
+    assert ok
+    fast = decode_png(encoded.tobytes())
+    assert fast is not None, "OpenCV's own PNGs (every row Sub-filtered) are what the fast path is for"
+    assert fast.dtype == np.uint8 and fast.shape == shape
+    assert np.array_equal(fast, _cv(encoded.tobytes()))
+
+
+def test_rows_without_a_filter_decode_too() -> None:
+    pixels = np.random.default_rng(1).integers(0, 256, (9, 11), dtype=np.uint8)
+    data = _handmade(pixels, 0)
+    assert np.array_equal(decode_png(data), pixels)
+    assert np.array_equal(_cv(data), pixels)
+
+
+@pytest.mark.parametrize("filter_type", [2, 3, 4])  # Up, Average, Paeth: other encoders' choices
+def test_other_filters_are_left_to_opencv(filter_type: int) -> None:
+    data = _handmade(np.random.default_rng(2).integers(0, 256, (9, 11), dtype=np.uint8), filter_type)
+    assert decode_png(data) is None
+    assert _cv(data) is not None
+
+
+def test_what_it_does_not_handle_is_declined() -> None:
+    grey = np.random.default_rng(3).integers(0, 256, (20, 30), dtype=np.uint8)
+    declined = {
+        "16-bit": cv2.imencode(".png", grey.astype(np.uint16) * 257)[1].tobytes(),
+        "alpha": cv2.imencode(".png", np.dstack([grey] * 4))[1].tobytes(),
+        "JPEG": cv2.imencode(".jpg", grey)[1].tobytes(),
+        "empty": b"",
+    }
+    for name, data in declined.items():
+        assert decode_png(data) is None, name
+
+
+def test_a_damaged_png_is_declined_not_misread() -> None:
+    grey = np.random.default_rng(4).integers(0, 256, (64, 64), dtype=np.uint8)
+    data = bytearray(cv2.imencode(".png", grey)[1].tobytes())
+    data[len(data) // 2] ^= 0xFF  # inside the compressed pixels: their Adler-32 no longer matches
+    assert decode_png(bytes(data)) is None
+    truncated = bytes(data[: len(data) // 3])
+    assert decode_png(truncated) is None
+
+
+def test_a_folder_of_opencv_pngs_replays_with_opencvs_frames(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    greys = [rng.integers(0, 256, (48, 64), dtype=np.uint8) for _ in range(5)]
+    for n, grey in enumerate(greys):
+        cv2.imwrite(str(tmp_path / f"{n}.png"), grey)
+    source = ImageFolderSource(tmp_path)
+    assert source._fast_png  # noqa: SLF001 - the folder's first image decided the decoder
+    frames = list(source)
+    assert [f.image.shape for f in frames] == [(48, 64)] * 5
+    assert all(np.array_equal(f.image, g) for f, g in zip(frames, greys, strict=True))
