@@ -185,6 +185,7 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
                if stats.tracked else "")
     print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{tracked}); "
           f"kept {len(session.views)}; solving...", file=sys.stderr)
+    viewer.start()  # a saving-only logger imports rerun and catches up now, beside the final solve
     with SolveStages(enabled=not args.quiet) as stages:
         result = session.finish(on_stage=stages)
         rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])

@@ -82,6 +82,7 @@ class SessionFinish:
     _error_weight: np.ndarray | None
     _check_image: tuple[int, np.ndarray] | None
     _samples: list[np.ndarray]
+    _final_poses: tuple[CameraModel, dict[int, BoardPose | None]] | None = None  # see _poses_under
 
     def _drifted(self, frame_index: int) -> bool:
         """Taken at a drifted focus (see `CalibrationSession.stop_accepting`)."""
@@ -225,11 +226,19 @@ class SessionFinish:
     def _look_alike_groups(self, views: Sequence[View], camera: CameraModel) -> list[int]:
         """Group number per view: frames showing the board at nearly the same place, size and tilt."""
         looks = []
-        for view in views:
-            det = view_detection(view)
-            pose = estimate_pose(det, camera, self.geometry.centre_m)
-            looks.append(None if pose is None else accepted_view(view.frame_index, det, pose))
+        for view, pose in zip(views, self._poses_under(views, camera), strict=True):
+            looks.append(None if pose is None else accepted_view(view.frame_index, view_detection(view), pose))
         return look_alike_groups(looks, self.settings.selector, float(np.hypot(*self.image_size)))
+
+    def _poses_under(self, views: Sequence[View], camera: CameraModel) -> list[BoardPose | None]:
+        """Each view's board pose under `camera`, kept for the next call with the same camera (the
+        look-alike groups and the final coverage both ask it of the final solve's hundreds of views)."""
+        known = self._final_poses if self._final_poses is not None and self._final_poses[0] is camera else (camera, {})
+        self._final_poses = known
+        for view in views:
+            if view.frame_index not in known[1]:
+                known[1][view.frame_index] = estimate_pose(view_detection(view), camera, self.geometry.centre_m)
+        return [known[1][view.frame_index] for view in views]
 
     def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:
         """The final covariance with each hold's look-alike frames counted for what they add.
@@ -246,10 +255,8 @@ class SessionFinish:
         live = self.selector.coverage
         coverage = CoverageMap(self.image_size, live.requirements, ranges=ranges_for(calibration.camera, self.geometry),
                                reachable=live.reachable)
-        for view in calibration.views:
-            det = view_detection(view)
-            pose = estimate_pose(det, calibration.camera, self.geometry.centre_m)
-            coverage.add(coverage.contribution(det, pose), pose.footprint if pose else None)
+        for view, pose in zip(calibration.views, self._poses_under(calibration.views, calibration.camera), strict=True):
+            coverage.add(coverage.contribution(view_detection(view), pose), pose.footprint if pose else None)
         return coverage
 
     def _not_enough_views_error(self) -> CalibrationError:

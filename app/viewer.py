@@ -37,6 +37,7 @@ import numpy as np
 import rerun as rr
 
 from calibcoach.app import viewer_blueprint as paths
+from calibcoach.app.preview import preview_factor, preview_jpeg
 from calibcoach.app.session import FrameOutcome, SessionResult
 from calibcoach.coverage.grid import DISTANCE_CELLS, TILT_CELLS, CoverageMap
 from calibcoach.coverage.guidance import Target
@@ -45,9 +46,7 @@ from calibcoach.drivers.errors import CalibcoachError
 from calibcoach.drivers.lens import CameraModel
 
 MODES = ("web", "native", "none")
-PREVIEW_MAX_WIDTH = 960  # px: enough to judge focus and corners, small enough for ~30 fps over the wire
 # JPEG by OpenCV, not rr.Image.compress: 0.9 ms against 6.4 ms for a 960x540 frame on this machine.
-JPEG_QUALITY = 75
 _SERVER_START_TIMEOUT_S = 15.0
 
 # Corner colours by the frame's fate (RGB): green kept, grey look-alike, orange hold still, red unusable.
@@ -97,15 +96,6 @@ def _wait_for_port(host: str, port: int, process: subprocess.Popen[bytes], timeo
         except OSError:
             time.sleep(0.1)
     raise ViewerError(f"the rerun viewer server did not listen on {host}:{port} within {timeout_s:.0f} s")
-
-
-def _preview_factor(width: int) -> int:
-    """Integer shrink factor to at most PREVIEW_MAX_WIDTH (1280 -> 640, 1920 -> 960, 3840 -> 960).
-
-    INTER_AREA over whole pixel blocks costs ~0.3 ms at 720p where a fractional 1280 -> 960 cost
-    ~2.7 ms, which made logging the largest per-frame cost after detection.
-    """
-    return max(1, -(-width // PREVIEW_MAX_WIDTH))
 
 
 def ghost_outline_px(camera: CameraModel, target: Target, per_edge: int = 12) -> np.ndarray:
@@ -200,6 +190,9 @@ class Viewer:
         rec.set_sinks(file_sink, default_blueprint=blueprint)
         return cls(rec, rrd_path, mode=mode)
 
+    def start(self) -> None:
+        """Nothing to catch up on: this viewer logs each frame as it comes (see BackgroundViewer.start)."""
+
     def close(self) -> None:
         """Flush, disconnect (writes the .rrd footer) and stop the web server; safe to call twice."""
         if self._closed:
@@ -233,16 +226,12 @@ class Viewer:
         self.recording.set_time("capture_time", duration=frame.timestamp_ns * 1e-9)
         self._log_image(frame)
 
-    def _log_image(self, frame: Frame) -> None:
-        w, h = frame.image_size
-        factor = _preview_factor(w)
-        preview = frame.image if factor == 1 else cv2.resize(frame.image, (w // factor, h // factor),
-                                                             interpolation=cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", preview, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])  # BGR or grey in, as OpenCV has it
-        if ok:
-            self.recording.log(paths.IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
+    def _log_image(self, frame: Frame, jpeg: bytes | None = None) -> None:
+        jpeg = preview_jpeg(frame.image) if jpeg is None else jpeg
+        if jpeg is not None:
+            self.recording.log(paths.IMAGE, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
 
-    def log_frame(self, outcome: FrameOutcome, frame: Frame, *, image: bool = True) -> None:
+    def log_frame(self, outcome: FrameOutcome, frame: Frame, *, image: bool = True, jpeg: bytes | None = None) -> None:
         """Log one processed frame: preview image, corners by fate, decision, guidance, progress.
 
         The image goes out every frame (it is the live view) unless `image` is False because the
@@ -254,9 +243,9 @@ class Viewer:
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("capture_time", duration=frame.timestamp_ns * 1e-9)
         w, h = frame.image_size
-        scale = 1.0 / _preview_factor(w)
+        scale = 1.0 / preview_factor(w)
         if image:
-            self._log_image(frame)
+            self._log_image(frame, jpeg)  # `jpeg`: its preview, already encoded (the frame may hold no pixels then)
 
         decision = outcome.decision
         text = f"frame {frame.index}: {decision.reason}" + (f" ({decision.detail})" if decision.detail else "")

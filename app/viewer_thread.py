@@ -1,10 +1,13 @@
 """Rerun logging on a thread of its own, for replays that save session.rrd and show nothing live.
 
-Importing rerun costs ~0.8 s and building its messages ~3 ms of Python per frame; on the replay's
-thread both add to every frame's time. Here they run on a logging thread that works while the
-replay thread waits for detections, so a replay costs little more than its detection. One queue
-keeps the order; `close()` waits until everything is written and re-raises what went wrong.
-Live sessions keep the direct `Viewer`: there the preview must not lag behind the camera.
+Importing rerun costs ~0.4 s of Python and building its messages ~1 ms per frame; on the replay's
+thread both add to every frame's time, and even on a thread of their own they hold the GIL the
+replay's thread needs. So the logging thread first waits: until the reading is done (`start()`,
+then it imports and logs while the final solve runs on the other core) or until `_START_PENDING`
+frames wait. Meanwhile each frame waits as its preview JPEG (encoded on the caller's thread, which
+OpenCV releases the GIL for) beside a copy of the frame without its pixels, ~50 KB instead of 1-6
+MB. One queue keeps the order; `close()` waits until everything is written and re-raises what
+went wrong. Live sessions keep the direct `Viewer`: there the preview must not lag behind the camera.
 """
 
 from __future__ import annotations
@@ -17,12 +20,16 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
+from calibcoach.app.preview import preview_jpeg
+
 if TYPE_CHECKING:  # the viewer (and rerun) is imported on the logging thread, never here
     from calibcoach.app.session import FrameOutcome, SessionResult
     from calibcoach.app.viewer import Viewer
     from calibcoach.drivers.base import Frame
 
-_MAX_PENDING = 32  # frames waiting to be logged (~30 MB at 720p) before the replay waits for the logger
+_START_PENDING = 1000  # frames waiting (~50 MB of previews) before the logger starts without being told
 
 
 class BackgroundViewer:
@@ -32,19 +39,25 @@ class BackgroundViewer:
     notice: str | None = None
 
     def __init__(self, open_viewer: Callable[[], Viewer]) -> None:
-        self._queue: queue.Queue[tuple[str, tuple] | None] = queue.Queue(maxsize=_MAX_PENDING)
+        self._queue: queue.Queue[tuple[str, tuple, dict] | None] = queue.Queue()
+        self._go = threading.Event()
         self._error: BaseException | None = None
         self._closed = False
         self._thread = threading.Thread(target=self._run, args=(open_viewer,), name="rerun-log", daemon=True)
         self._thread.start()
 
+    def start(self) -> None:
+        """Begin logging now (the replay has read its source): import rerun and catch up."""
+        self._go.set()
+
     def _run(self, open_viewer: Callable[[], Viewer]) -> None:
         viewer = None
         try:
+            self._go.wait()
             viewer = open_viewer()
             while (item := self._queue.get()) is not None:
-                method, args = item
-                getattr(viewer, method)(*args)
+                method, args, kwargs = item
+                getattr(viewer, method)(*args, **kwargs)
         except BaseException as exc:  # noqa: BLE001 - handed to close(), which re-raises it
             self._error = exc
             while self._queue.get() is not None:  # keep taking, so the replay never blocks on a dead logger
@@ -56,21 +69,26 @@ class BackgroundViewer:
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         if outcome.decision.accepted:  # the map is the session's live one: log it as it is now
             outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
-        self._put(("log_frame", (outcome, frame)))
+        w, h = frame.image_size
+        pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8))  # its size and name, not its pixels
+        self._put(("log_frame", (outcome, pixelless), {"jpeg": preview_jpeg(frame.image)}))
 
     def log_result(self, result: SessionResult, out_dir: Path) -> None:
-        self._put(("log_result", (result, out_dir)))
+        self._put(("log_result", (result, out_dir), {}))
 
-    def _put(self, item: tuple[str, tuple]) -> None:
+    def _put(self, item: tuple[str, tuple, dict]) -> None:
         if self._closed:
             raise RuntimeError("the viewer is closed")
         self._queue.put(item)
+        if self._queue.qsize() >= _START_PENDING:
+            self._go.set()
 
     def close(self) -> None:
         """Wait until everything is logged and session.rrd is complete; raise what the logger hit."""
         if self._closed:
             return
         self._closed = True
+        self._go.set()
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
