@@ -147,10 +147,18 @@ def open_viewer(args: argparse.Namespace):
 
 
 def open_replay_viewer(args: argparse.Namespace):
-    """A replay that only saves session.rrd logs on a thread of its own; one shown live logs directly."""
+    """A replay that only saves session.rrd logs in a child process (app/viewer_process.py), or on a
+    thread of its own where no child can be started; one shown live logs directly."""
     if args.viewer != "none":
         return open_viewer(args)
+    from calibcoach.app.viewer_process import ProcessViewer
     from calibcoach.app.viewer_thread import BackgroundViewer
+
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    try:
+        return ProcessViewer(Path(args.out))
+    except OSError:
+        pass
 
     def open_saving_only():
         from calibcoach.app.viewer import Viewer  # imported on the logging thread: rerun takes ~0.8 s to load
@@ -185,7 +193,7 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
                if stats.tracked else "")
     print(f"calibcoach: read {stats.frames_read} frames in {stats.seconds:.1f} s ({why_stopped}{tracked}); "
           f"kept {len(session.views)}; solving...", file=sys.stderr)
-    viewer.start()  # a saving-only logger imports rerun and catches up now, beside the final solve
+    viewer.start()  # a saving-only logger (its own process) imports rerun and catches up now, beside the final solve
     with SolveStages(enabled=not args.quiet) as stages:
         result = session.finish(on_stage=stages)
         rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])

@@ -7,8 +7,12 @@ while the Rerun logger, on a thread of its own, imports rerun only once the read
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
+
+from calibcoach.drivers.base import Frame
 
 PREVIEW_MAX_WIDTH = 960  # px: enough to judge focus and corners, small enough for ~30 fps over the wire
 JPEG_QUALITY = 75
@@ -30,3 +34,11 @@ def preview_jpeg(image: np.ndarray) -> bytes | None:
     preview = image if factor == 1 else cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
     ok, jpeg = cv2.imencode(".jpg", preview, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])  # BGR or grey in, as OpenCV has it
     return jpeg.tobytes() if ok else None
+
+
+def frame_for_log(frame: Frame) -> tuple[Frame, bytes | None]:
+    """The frame as a deferred logger holds it: its size, name and controls without its pixels
+    (1-6 MB), and its preview JPEG (~50 KB). Controls become a plain dict, which pickles."""
+    w, h = frame.image_size
+    pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8), controls=dict(frame.controls))
+    return pixelless, preview_jpeg(frame.image)

@@ -130,17 +130,17 @@ class HeldFrameScan:
         return detector
 
     def __iter__(self) -> Iterator[Seen]:
-        with ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="scan") as pool:
+        with ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="scan") as pool, \
+                ThreadPoolExecutor(max_workers=1, thread_name_prefix="thumbnail") as thumbnails:
             window: deque[_Plan] = deque()
             previous: Seen | None = None
             # the newest frame waits for its successor, whose change in is its change out
             newest: Frame | None = None
             newest_thumb, newest_change = np.zeros(0, np.float32), float("inf")
             try:
-                for frame in self._frames:
+                for frame, thumb in _thumbnailed(self._frames, thumbnails):
                     if self._lookahead is None:
                         self._lookahead = frames_ahead(frame.image.nbytes)
-                    thumb = thumbnail(frame.grey())
                     change_in = float("inf") if newest is None else scene_change(newest_thumb, thumb)
                     if newest is not None:
                         window.append(self._plan(newest, newest_change, change_out=change_in, pool=pool))
@@ -210,6 +210,20 @@ class HeldFrameScan:
         elif not continues:
             self._richest = None
         return seen
+
+
+def _thumbnailed(frames: Iterable[Frame], pool: ThreadPoolExecutor, ahead: int = 4) -> Iterator[tuple[Frame, np.ndarray]]:
+    """(frame, its thumbnail), the thumbnails made a few frames ahead on `pool` (OpenCV releases the GIL),
+    off the thread that plans, tracks and judges."""
+    pending: deque[tuple[Frame, Future[np.ndarray]]] = deque()
+    for frame in frames:
+        pending.append((frame, pool.submit(lambda f: thumbnail(f.grey()), frame)))
+        if len(pending) > ahead:
+            done, thumb = pending.popleft()
+            yield done, thumb.result()
+    while pending:
+        done, thumb = pending.popleft()
+        yield done, thumb.result()
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,8 +3,9 @@
 Importing rerun costs ~0.4 s of Python and building its messages ~1 ms per frame; on the replay's
 thread both add to every frame's time, and even on a thread of their own they hold the GIL the
 replay's thread needs. So the logging thread first waits: until the reading is done (`start()`,
-then it imports and logs while the final solve runs on the other core) or until `_START_PENDING`
-frames wait. Meanwhile each frame waits as its preview JPEG (encoded on the caller's thread, which
+then it imports and logs beside the final solve, still taking turns at the GIL with it) or until
+`_START_PENDING` frames wait. A replay's CLI uses the child process of app/viewer_process.py
+instead, which has a GIL of its own; this thread is where no child can be started. Meanwhile each frame waits as its preview JPEG (encoded on the caller's thread, which
 OpenCV releases the GIL for) beside a copy of the frame without its pixels, ~50 KB instead of 1-6
 MB. One queue keeps the order; `close()` waits until everything is written and re-raises what
 went wrong. Live sessions keep the direct `Viewer`: there the preview must not lag behind the camera.
@@ -20,9 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
-from calibcoach.app.preview import preview_jpeg
+from calibcoach.app.preview import frame_for_log
 
 if TYPE_CHECKING:  # the viewer (and rerun) is imported on the logging thread, never here
     from calibcoach.app.session import FrameOutcome, SessionResult
@@ -69,9 +68,8 @@ class BackgroundViewer:
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         if outcome.decision.accepted:  # the map is the session's live one: log it as it is now
             outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
-        w, h = frame.image_size
-        pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8))  # its size and name, not its pixels
-        self._put(("log_frame", (outcome, pixelless), {"jpeg": preview_jpeg(frame.image)}))
+        pixelless, jpeg = frame_for_log(frame)
+        self._put(("log_frame", (outcome, pixelless), {"jpeg": jpeg}))
 
     def log_result(self, result: SessionResult, out_dir: Path) -> None:
         self._put(("log_result", (result, out_dir), {}))

@@ -1,4 +1,4 @@
-"""Replays log to Rerun on a thread of their own: the saved session is complete, in order, and a
+"""Replays log to Rerun in a child process (or on a thread of their own): the saved session is complete, in order, and a
 logger that fails neither hangs the replay nor goes unreported."""
 
 from __future__ import annotations
@@ -41,5 +41,19 @@ def test_a_logger_that_cannot_open_never_blocks_the_replay_and_is_reported() -> 
     for _ in range(100):  # more than the queue holds: a dead logger must not make the replay wait for ever
         viewer.log_result(None, Path("."))  # type: ignore[arg-type]
     with pytest.raises(ViewerError, match="disk full"):
+        viewer.close()
+    viewer.close()  # idempotent once closed
+
+
+def test_a_logging_child_that_fails_is_reported_and_never_blocks_the_replay(tmp_path: Path) -> None:
+    from calibcoach.app.viewer_process import LoggerError, ProcessViewer
+
+    blocked = tmp_path / "not_a_folder"
+    blocked.write_text("a file where session.rrd's folder should be")
+    viewer = ProcessViewer(blocked)
+    viewer.start()  # the child tries to open blocked/session.rrd and fails
+    for _ in range(100):  # more than a pipe holds: a dead child must not make the replay wait for ever
+        viewer.log_result(None, Path("."))  # type: ignore[arg-type]
+    with pytest.raises(LoggerError, match="session.rrd"):
         viewer.close()
     viewer.close()  # idempotent once closed
