@@ -7,12 +7,12 @@ measured 0.3-0.4 s on a 784-frame 720p folder). A child process has a GIL of its
 what it is sent until `start()` (the reading is done), then imports rerun and writes session.rrd
 on the other core while the final solve and the outputs are computed here.
 
-What is sent: each frame's outcome with its preview JPEG (encoded here, where OpenCV releases the
-GIL) and the frame without its pixels, pickled over the child's stdin, in order (app/viewer_child.py
-reads it). The child runs
-in a session of its own, so the Ctrl-C meant for the replay does not cut the log short; `close()`
-waits for it and raises, naming the child's last words, if it failed. Where a child cannot be
-started at all, `open_background_viewer` falls back on the logging thread.
+What is sent: each frame's outcome with its preview JPEG and the frame without its pixels,
+encoded and pickled on a sending thread here (off the replay's path) and written to the child's
+stdin in order (app/viewer_child.py reads it). The child runs in a session of its own, so the
+Ctrl-C meant for the replay does not cut the log short; `close()` waits for it and raises,
+naming the child's last words, if it failed. Where no child can be started at all,
+`commands.open_replay_viewer` falls back on the logging thread (app/viewer_thread.py).
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ class ProcessViewer:
         self._reader = threading.Thread(target=lambda: self._said.extend(self._child.stderr), daemon=True)  # type: ignore[arg-type]
         self._reader.start()
         self._closed = False
+        self._error: Exception | None = None  # what the sending thread hit
         # Frames are encoded, pickled and written on a thread of their own, off the replay's path;
         # the queue bounds the frames held meanwhile (~30 MB at 720p).
         self._outbox: queue.Queue[tuple[FrameOutcome, Frame] | bytes | None] = queue.Queue(maxsize=_MAX_PENDING)
@@ -76,12 +77,17 @@ class ProcessViewer:
 
     def _write_all(self) -> None:
         while (item := self._outbox.get()) is not None:
-            if isinstance(item, bytes):
-                self._write(item)
-                continue
-            outcome, frame = item
-            pixelless, jpeg = frame_for_log(frame)
-            self._write(_message(("log_frame", (outcome, pixelless), {"jpeg": jpeg})))
+            if self._error is not None:
+                continue  # keep taking, so the replay never blocks on a full queue; close() reports it
+            try:
+                if isinstance(item, bytes):
+                    self._write(item)
+                else:
+                    outcome, frame = item
+                    pixelless, jpeg = frame_for_log(frame)
+                    self._write(_message(("log_frame", (outcome, pixelless), {"jpeg": jpeg})))
+            except Exception as exc:  # noqa: BLE001 - e.g. an outcome that does not pickle: handed to close()
+                self._error = exc
 
     def start(self) -> None:
         """The reading is done: the child imports rerun and writes what it holds."""
@@ -111,6 +117,9 @@ class ProcessViewer:
         code = self._child.wait()
         self._reader.join(timeout=5.0)
         self._child.stderr.close()  # type: ignore[union-attr]
+        if self._error is not None:
+            raise LoggerError(f"writing session.rrd failed ({type(self._error).__name__}: {self._error}); "
+                              "the calibration files are unaffected") from self._error
         if code != 0:
             said = b"".join(self._said).decode(errors="replace").strip().splitlines()
             raise LoggerError(f"writing session.rrd failed ({said[-1] if said else f'exit code {code}'}); "
