@@ -128,7 +128,8 @@ class _Feeder:
 
     Fully detected frames go through the session's judgement; tracked frames wait until a fully
     detected frame of their hold (before or after them) has been judged, then join the reserve if
-    the hold was usable and the board stood still on both sides of each (`_still_repeats`).
+    the hold was usable and the board stood still on both sides of each (`_still_repeats`) or, where
+    it moved more, the frame's own image shows it sharp (`CalibrationSession.sharp_enough`).
     Frames skipped in transit are only counted as seen.
     """
 

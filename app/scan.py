@@ -20,8 +20,9 @@ A frame of footage into and out of which the scene changed fast (`_TRANSIT_CHANG
 in transit: it is marked so and the session rejects it as moving whatever its edges say (it
 smears, and on other renderers and real cameras its corners are biased along the motion); only
 every 8th such frame is detected at all. The tracked frames of a hold join the session's reserve
-when a fully detected frame of the same hold was judged usable and the board moved at most the
-selector's smear limit into and out of them (app/replay.py).
+when a fully detected frame of the same hold was judged usable and either the board moved at most
+the selector's smear limit into and out of them or their own image passes its smear and blur
+tests (app/replay.py).
 
 Frames without a board whose thumbnail did not change either show no board either: their empty
 detection is repeated. Every decision depends on the images alone, never on timing or threads,
