@@ -304,13 +304,18 @@ def accepted_view(frame_index: int, detection: Detection, pose: BoardPose) -> Ac
 
 def look_alike(a: AcceptedView, b: AcceptedView, settings: SelectorSettings, diagonal_px: float) -> bool:
     """Two frames show the board at nearly the same place, size and tilt (one hold, say)."""
-    s = settings
-    return bool(
-        np.linalg.norm(a.centre_px - b.centre_px) < s.duplicate_centre * diagonal_px
-        and abs(a.footprint - b.footprint) < s.duplicate_footprint * max(a.footprint, 1e-6)
-        and abs(a.tilt_x_deg - b.tilt_x_deg) < s.duplicate_tilt_deg
-        and abs(a.tilt_y_deg - b.tilt_y_deg) < s.duplicate_tilt_deg
-    )
+    return bool(_alike(a.centre_px, a.footprint, a.tilt_x_deg, a.tilt_y_deg,
+                       b.centre_px, b.footprint, b.tilt_x_deg, b.tilt_y_deg, settings, diagonal_px))
+
+
+def _alike(centre_a, footprint_a, tilt_x_a, tilt_y_a, centre_b, footprint_b, tilt_x_b, tilt_y_b,
+           s: SelectorSettings, diagonal_px: float):
+    """The look-alike test of earlier frame(s) a against frame(s) b; the arguments broadcast like
+    numpy arrays (centres (..., 2)), so one frame pair and all pairs of a final solve share it."""
+    return ((np.linalg.norm(np.asarray(centre_a) - np.asarray(centre_b), axis=-1) < s.duplicate_centre * diagonal_px)
+            & (np.abs(np.subtract(footprint_a, footprint_b)) < s.duplicate_footprint * np.maximum(footprint_a, 1e-6))
+            & (np.abs(np.subtract(tilt_x_a, tilt_x_b)) < s.duplicate_tilt_deg)
+            & (np.abs(np.subtract(tilt_y_a, tilt_y_b)) < s.duplicate_tilt_deg))
 
 
 def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettings, diagonal_px: float) -> list[int]:
@@ -320,17 +325,15 @@ def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettin
     for all pairs at once: a final solve has hundreds of frames). Frames without a pose (None)
     are a group of their own.
     """
-    n, s = len(looks), settings
+    n = len(looks)
     valid = np.array([v is not None for v in looks], bool)
     known = [v if v is not None else AcceptedView(-1, np.zeros(2), 0.0, 0.0, 0.0) for v in looks]
     centre = np.array([v.centre_px for v in known], np.float64).reshape(n, 2)
     footprint, tilt_x, tilt_y = (np.array([getattr(v, name) for v in known], np.float64)
                                  for name in ("footprint", "tilt_x_deg", "tilt_y_deg"))
     # alike[j, i]: earlier frame j (the "a" of look_alike) and frame i
-    alike = (np.linalg.norm(centre[:, None, :] - centre[None, :, :], axis=2) < s.duplicate_centre * diagonal_px) \
-        & (np.abs(footprint[:, None] - footprint[None, :]) < s.duplicate_footprint * np.maximum(footprint, 1e-6)[:, None]) \
-        & (np.abs(tilt_x[:, None] - tilt_x[None, :]) < s.duplicate_tilt_deg) \
-        & (np.abs(tilt_y[:, None] - tilt_y[None, :]) < s.duplicate_tilt_deg) \
+    alike = _alike(centre[:, None, :], footprint[:, None], tilt_x[:, None], tilt_y[:, None],
+                   centre[None, :, :], footprint[None, :], tilt_x[None, :], tilt_y[None, :], settings, diagonal_px) \
         & valid[:, None] & valid[None, :]
     groups: list[int] = []
     for i in range(n):
