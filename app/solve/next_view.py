@@ -45,35 +45,34 @@ class RankedPose:
     score: float  # what the ranking sorts by (higher first)
 
 
-def error_cut(information: np.ndarray, weight: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray,
-              before: float | None = None) -> tuple[np.ndarray, float]:
+def error_cut(information: np.ndarray, weight: np.ndarray, J_intr: np.ndarray, J_pose: np.ndarray) -> tuple[np.ndarray, float]:
     """New information and the relative cut of E = sqrt(trace(W S^-1)) if a view joins.
 
     Args:
         information: (P, P) float64 S of the frames so far (unit noise).
         weight: (P, P) float64 W (`UncertaintyMap.error_weight`).
         J_intr: (2n, P) float64 the view's intrinsic Jacobian; J_pose (2n, 6) its pose Jacobian.
-        before: trace(W S^-1) when already known (ranking many candidates against one S).
 
     Returns:
         (P, P) float64 S with the view, and the cut 1 - E_after / E_before in [0, 1].
     """
-    if before is None:
-        before = float(np.sum(weight * covariance_from_information(information)))
     S_new = schur_update(information, J_intr, J_pose)
-    after = float(np.sum(weight * covariance_from_information(S_new)))
-    if not (before > 0 and np.isfinite(after)):
-        return S_new, 0.0
-    return S_new, float(max(0.0, 1.0 - np.sqrt(max(after, 0.0) / before)))
+    return S_new, _cut(float(np.sum(weight * covariance_from_information(information))),
+                       float(np.sum(weight * covariance_from_information(S_new))))
 
 
 def error_cuts(information: np.ndarray, weight: np.ndarray, jacobians: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[float]:
     """`error_cut` of each view's (J_intr, J_pose) joining S on its own, batched (ranking hundreds of candidates)."""
     before = float(np.sum(weight * covariance_from_information(information)))
     after = np.sum(weight * covariance_from_information(schur_updates(information, jacobians)), axis=(-2, -1))
-    if not before > 0:
-        return [0.0] * len(jacobians)
-    return [float(max(0.0, 1.0 - np.sqrt(max(a, 0.0) / before))) if np.isfinite(a) else 0.0 for a in after]
+    return [_cut(before, float(a)) for a in after]
+
+
+def _cut(before: float, after: float) -> float:
+    """1 - E_after / E_before from trace(W S^-1) before and after, in [0, 1]; 0 where either is unusable."""
+    if not (before > 0 and np.isfinite(after)):
+        return 0.0
+    return float(max(0.0, 1.0 - np.sqrt(max(after, 0.0) / before)))
 
 
 def detection_of(candidate: CandidatePose) -> Detection:
