@@ -20,7 +20,7 @@ from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSett
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.redetect import RedetectionCounts
-from calibcoach.coverage.select import board_motion_px
+from calibcoach.coverage.select import board_speed_px_s
 from calibcoach.drivers.base import Frame, FrameSource
 from calibcoach.drivers.errors import SourceError
 
@@ -252,9 +252,7 @@ def _speed_px_s(before: Seen | None, seen: Seen) -> float | None:
     """Median corner speed from the frame before to this one, px/s (as the session measures it), or None."""
     if before is None:
         return None
-    moved = board_motion_px(before.detection, seen.detection)
-    dt_s = abs(seen.frame.timestamp_ns - before.frame.timestamp_ns) / 1e9
-    return None if moved is None or dt_s <= 0 else moved / dt_s
+    return board_speed_px_s(before.detection, before.frame.timestamp_ns, seen.detection, seen.frame.timestamp_ns)
 
 
 def _repeat_speeds(hold: _Hold) -> list[float | None]:

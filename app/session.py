@@ -52,7 +52,7 @@ from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.select import (
     Decision,
     FrameSelector,
-    board_motion_px,
+    board_speed_px_s,
 )
 from calibcoach.coverage.sharpness import edge_blur
 from calibcoach.coverage.virtual_view import BoardGeometry
@@ -233,16 +233,10 @@ class CalibrationSession(SessionFinish):
         """Corner speed around this frame, px/s: the larger of the backward and forward differences."""
         if not self.settings.use_motion_gate:
             return None
-        speeds = []
-        for neighbour in (self._previous, following):
-            if neighbour is None or neighbour[0] is None:
-                continue
-            other, t_other = neighbour
-            moved = board_motion_px(other, detection)
-            dt_s = abs(frame.timestamp_ns - t_other) / 1e9
-            if moved is not None and dt_s > 0:
-                speeds.append(moved / dt_s)
-        return max(speeds) if speeds else None
+        speeds = [board_speed_px_s(other, t_other, detection, frame.timestamp_ns)
+                  for other, t_other in (self._previous, following or (None, 0)) if other is not None]
+        known = [v for v in speeds if v is not None]
+        return max(known) if known else None
 
     def _error_cut(self, detection: Detection, pose: BoardPose | None) -> float:
         """Relative cut of E if this frame joined (0 when there is nothing to compare with yet)."""

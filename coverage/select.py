@@ -116,6 +116,13 @@ def board_motion_px(previous: Detection | None, current: Detection) -> float | N
     return float(np.median(np.linalg.norm(previous.corners_px[ia] - current.corners_px[ib], axis=1)))
 
 
+def board_speed_px_s(other: Detection | None, other_ns: int, current: Detection, current_ns: int) -> float | None:
+    """`board_motion_px` between two frames over the time between them, px/s; None when unknown."""
+    moved = None if other is None else board_motion_px(other, current)
+    dt_s = abs(current_ns - other_ns) / 1e9
+    return None if moved is None or dt_s <= 0 else moved / dt_s
+
+
 class FrameSelector:
     """Decides frame by frame; owns the coverage map and the list of accepted views."""
 
