@@ -198,7 +198,7 @@ class ImageFolderSource(FrameSource):
         self._first_name = "" if first_path is None else first_path.name
         # One encoder wrote the folder: when its first image is a PNG the fast decoder handles, so are
         # the rest (and when not, none is tried: a failed try costs its inflate, ~1 ms).
-        self._fast_png = first_path is not None and _fast_png_decodes(first_path)
+        self._fast_png = first_path is not None and _fast_png_decodes(first_path, first)
         if first is None:
             raise SourceError(
                 f"none of the {len(self._files)} images in {self.path} decodes (e.g. {self._files[0].name}); "
@@ -353,13 +353,12 @@ def _read_image(path: Path, flags: int = _IMREAD_FLAGS, *, fast_png: bool = Fals
     return image
 
 
-def _fast_png_decodes(path: Path) -> bool:
-    """Whether drivers/png_fast.py decodes this file, to the pixel as OpenCV does."""
+def _fast_png_decodes(path: Path, decoded: np.ndarray) -> bool:
+    """Whether drivers/png_fast.py decodes this file to the pixels OpenCV `decoded` it to."""
     if path.suffix.lower() != ".png":
         return False
-    data = np.fromfile(path, np.uint8)
-    fast = decode_png(data.data)
-    return fast is not None and np.array_equal(fast, cv2.imdecode(data, _IMREAD_FLAGS))
+    fast = decode_png(np.fromfile(path, np.uint8).data)
+    return fast is not None and np.array_equal(fast, decoded)
 
 
 def _unreadable_reason(path: Path) -> str:
