@@ -4,11 +4,14 @@ Importing rerun costs ~0.4 s of Python and building its messages ~1 ms per frame
 thread both add to every frame's time, and even on a thread of their own they hold the GIL the
 replay's thread needs. So the logging thread first waits: until the reading is done (`start()`,
 then it imports and logs beside the final solve, still taking turns at the GIL with it) or until
-`_START_PENDING` frames wait. A replay's CLI uses the child process of app/viewer_process.py
-instead, which has a GIL of its own; this thread is where no child can be started. Meanwhile each frame waits as its preview JPEG (encoded on the caller's thread, which
-OpenCV releases the GIL for) beside a copy of the frame without its pixels, ~50 KB instead of 1-6
-MB. One queue keeps the order; `close()` waits until everything is written and re-raises what
-went wrong. Live sessions keep the direct `Viewer`: there the preview must not lag behind the camera.
+`_START_PENDING` frames wait. Meanwhile each frame waits as its preview JPEG (encoded on the
+caller's thread, which OpenCV releases the GIL for) beside a copy of the frame without its
+pixels, ~50 KB instead of 1-6 MB. One queue keeps the order; `close()` waits until everything is
+written and re-raises what went wrong.
+
+A replay's CLI logs in the child process of app/viewer_process.py instead, which has a GIL of its
+own; this thread is the fallback where no child can be started. Live sessions keep the direct
+`Viewer`: there the preview must not lag behind the camera.
 """
 
 from __future__ import annotations
