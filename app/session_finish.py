@@ -28,7 +28,7 @@ from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose
-from calibcoach.coverage.select import AcceptedView, accepted_view, look_alike, look_alike_groups
+from calibcoach.coverage.select import LookAlikeTable, accepted_view, look_alike_groups
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
@@ -202,20 +202,17 @@ class SessionFinish:
                 return
             self.camera = raw.camera
             self._information = marginal_information(raw.camera, self.views, raw.rvecs, raw.tvecs)
-        looks: dict[int, AcceptedView | None] = {}
-
-        def look(view: View) -> AcceptedView | None:
-            if view.frame_index not in looks:
-                det = view_detection(view)
-                pose = self._pose(det)
-                looks[view.frame_index] = None if pose is None else accepted_view(view.frame_index, det, pose)
-            return looks[view.frame_index]
-
-        diagonal = float(np.hypot(*self.image_size))
+        offered = [*self.views, *(v for v, _q in self._reserve)]
+        row = {id(view): i for i, view in enumerate(offered)}
+        looks = []
+        for view in offered:
+            det = view_detection(view)
+            pose = self._pose(det)
+            looks.append(None if pose is None else accepted_view(view.frame_index, det, pose))
+        table = LookAlikeTable(looks, self.settings.selector, float(np.hypot(*self.image_size)))
 
         def alike(a: View, b: View) -> bool:
-            la, lb = look(a), look(b)
-            return la is not None and lb is not None and look_alike(la, lb, self.settings.selector, diagonal)
+            return table(row[id(a)], row[id(b)])
 
         distinct, repeats = fill_from_reserve(self.camera, self._information, self._error_weight, self._reserve, budget,
                                               alike=alike, kept=self.views)

@@ -15,7 +15,7 @@ Gates, cheapest first (each rejection is counted with its reason):
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -325,6 +325,42 @@ def _alike(centre_a, footprint_a, tilt_x_a, tilt_y_a, centre_b, footprint_b, til
             & (np.abs(np.subtract(tilt_y_a, tilt_y_b)) < s.duplicate_tilt_deg))
 
 
+def _stacked(looks: Sequence[AcceptedView | None]) -> tuple[np.ndarray, ...]:
+    """(valid (n,), centre (n, 2), footprint, tilt_x, tilt_y (n,)) of frames; None (no pose) is not valid."""
+    n = len(looks)
+    valid = np.array([v is not None for v in looks], bool)
+    known = [v if v is not None else AcceptedView(-1, np.zeros(2), 0.0, 0.0, 0.0) for v in looks]
+    centre = np.array([v.centre_px for v in known], np.float64).reshape(n, 2)
+    footprint, tilt_x, tilt_y = (np.array([getattr(v, name) for v in known], np.float64)
+                                 for name in ("footprint", "tilt_x_deg", "tilt_y_deg"))
+    return valid, centre, footprint, tilt_x, tilt_y
+
+
+class LookAlikeTable:
+    """`look_alike` between any two of a fixed list of frames, one frame against all others at a time.
+
+    The final solve's budget fill asks it thousands of times among hundreds of frames; each frame
+    asked about as the later one ("b") is compared with every frame at once and remembered, which
+    keeps the memory to frames x frames asked about rather than frames squared. A frame without a
+    pose (None) looks like nothing.
+    """
+
+    def __init__(self, looks: Sequence[AcceptedView | None], settings: SelectorSettings, diagonal_px: float) -> None:
+        self._arrays = _stacked(looks)
+        self._settings, self._diagonal = settings, diagonal_px
+        self._against: dict[int, np.ndarray] = {}
+
+    def __call__(self, a: int, b: int) -> bool:
+        """look_alike(looks[a], looks[b])."""
+        column = self._against.get(b)
+        if column is None:
+            valid, centre, footprint, tilt_x, tilt_y = self._arrays
+            column = _alike(centre, footprint, tilt_x, tilt_y, centre[b], footprint[b], tilt_x[b], tilt_y[b],
+                            self._settings, self._diagonal) & valid & valid[b]
+            self._against[b] = column
+        return bool(column[a])
+
+
 def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettings, diagonal_px: float) -> list[int]:
     """A group number per frame: frames that look alike (transitively, in order) share one.
 
@@ -333,11 +369,7 @@ def look_alike_groups(looks: list[AcceptedView | None], settings: SelectorSettin
     are a group of their own.
     """
     n = len(looks)
-    valid = np.array([v is not None for v in looks], bool)
-    known = [v if v is not None else AcceptedView(-1, np.zeros(2), 0.0, 0.0, 0.0) for v in looks]
-    centre = np.array([v.centre_px for v in known], np.float64).reshape(n, 2)
-    footprint, tilt_x, tilt_y = (np.array([getattr(v, name) for v in known], np.float64)
-                                 for name in ("footprint", "tilt_x_deg", "tilt_y_deg"))
+    valid, centre, footprint, tilt_x, tilt_y = _stacked(looks)
     # alike[j, i]: earlier frame j (the "a" of look_alike) and frame i
     alike = _alike(centre[:, None, :], footprint[:, None], tilt_x[:, None], tilt_y[:, None],
                    centre[None, :, :], footprint[None, :], tilt_x[None, :], tilt_y[None, :], settings, diagonal_px) \
