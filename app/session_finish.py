@@ -11,6 +11,7 @@ selector, incremental intrinsics) is the session's own.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -114,34 +115,49 @@ class SessionFinish:
         kept_live = list(self.views)
         self._fill_budget()
         stage("model choice")
-        if self.settings.model == "auto":
-            # On the frames the budget of the live selection holds (distinct poses, then repeats of every
-            # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
-            # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational
-            # lens was solved as a fisheye 0.7 px off on 2 of 5 renders; on all 400 the halves share poses.
-            budget = max(0, self.settings.selector.max_frames - len(self.views))
-            choice = choose_model(sorted(self.views + self._repeats[:budget], key=lambda v: v.frame_index), self.image_size)
-        else:
-            choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
-        initial = self.camera if self.camera.model == choice.chosen else None
         distinct = self.views
-        self.views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)
-        self._repeats = []
-        stage("robust solve")
-        # cv2.fisheye.calibrate re-initialises every view's pose at each step and asserts when one turns
-        # degenerate (robust.solve_kept leaves out one such frame, not several); among hundreds of
-        # frames that happened on 1 of 5 fisheye renders. Then the distinct poses alone, then the frames
-        # kept live (which the incremental solves took), are solved instead.
-        offered = len(self.views)
-        fallbacks = [v for v in (distinct, kept_live) if 3 <= len(v) < len(self.views)]
-        while True:
-            try:
-                solved = robust_calibrate(self.views, self.image_size, choice.chosen, initial=initial)
-                break
-            except CalibrationError:
-                if not fallbacks:
-                    raise
-                self.views = fallbacks.pop(0)
+        offered_views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)
+        budget = max(0, self.settings.selector.max_frames - len(self.views))
+        choice_views = sorted(self.views + self._repeats[:budget], key=lambda v: v.frame_index)
+        self.views, self._repeats = offered_views, []
+
+        def solve_with(views: Sequence[View], model: str) -> Calibration:
+            return robust_calibrate(views, self.image_size, model, initial=self.camera if self.camera.model == model else None)
+
+        # The robust solve of the likeliest model starts as soon as the field of view names it and
+        # runs beside the model choice's cross-validation (OpenCV releases the GIL): its inputs do
+        # not depend on the choice, so the result is the same as solving after it. Where another
+        # model is chosen, it is left to finish unread and the chosen one solved here.
+        ahead: dict[str, Future[Calibration]] = {}
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="solve-ahead")
+        try:
+            if self.settings.model == "auto":
+                # On the frames the budget of the live selection holds (distinct poses, then repeats of every
+                # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
+                # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational
+                # lens was solved as a fisheye 0.7 px off on 2 of 5 renders; on all 400 the halves share poses.
+                choice = choose_model(choice_views, self.image_size, on_likely=lambda model: ahead.setdefault(
+                    model, pool.submit(solve_with, offered_views, model)))
+            else:
+                choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
+            stage("robust solve")
+            # cv2.fisheye.calibrate re-initialises every view's pose at each step and asserts when one turns
+            # degenerate (robust.solve_kept leaves out one such frame, not several); among hundreds of
+            # frames that happened on 1 of 5 fisheye renders. Then the distinct poses alone, then the frames
+            # kept live (which the incremental solves took), are solved instead.
+            offered = len(self.views)
+            fallbacks = [v for v in (distinct, kept_live) if 3 <= len(v) < len(self.views)]
+            started = ahead.get(choice.chosen)
+            while True:
+                try:
+                    solved = started.result() if started is not None else solve_with(self.views, choice.chosen)
+                    break
+                except CalibrationError:
+                    if not fallbacks:
+                        raise
+                    started, self.views = None, fallbacks.pop(0)
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
         calibration = self._with_look_alikes_weighted(solved)
         corner_sets = [v.image_points_px for v in calibration.views]
         # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve

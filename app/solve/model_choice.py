@@ -10,7 +10,7 @@ rational beyond ~90 deg, Kannala-Brandt beyond 120 deg).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -95,11 +95,20 @@ def candidate_order(hfov_deg: float) -> list[str]:
     return ["pinhole", "rational"]
 
 
-def choose_model(views: Sequence[View], image_size: tuple[int, int]) -> ModelChoice:
-    """Pick a model for `views` by field of view and odd/even cross-validation."""
+def choose_model(views: Sequence[View], image_size: tuple[int, int], *,
+                 on_likely: Callable[[str], None] | None = None) -> ModelChoice:
+    """Pick a model for `views` by field of view and odd/even cross-validation.
+
+    `on_likely(model)` is told, once the field of view is known and before the cross-validation,
+    the model most likely chosen (the simplest candidate for that field of view, which wins
+    whenever it is within the margin of the best), so that its solve can start alongside.
+    """
     hfov = estimate_hfov_deg(views, image_size)
     order = candidate_order(hfov)
-    if len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION:
+    few = len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION
+    if on_likely is not None:
+        on_likely(("fisheye" if hfov >= 120.0 else "pinhole") if few else order[0])
+    if few:
         chosen = "fisheye" if hfov >= 120.0 else "pinhole"
         return ModelChoice(chosen, {}, (
             f"only {len(views)} views: too few to cross-validate, so the {chosen} model was taken from the "

@@ -190,3 +190,15 @@ def test_the_held_out_pose_refinement_converges_from_a_rough_start(lens: str) ->
     rvec, tvec = mc._refine_pose(camera, view, r + 0.05, t * 1.1)
     np.testing.assert_allclose(rvec, r, atol=1e-8)
     np.testing.assert_allclose(tvec, t, atol=1e-8)
+
+
+@pytest.mark.parametrize(("hfov", "n", "likely"), [(60.0, 8, "pinhole"), (100.0, 8, "rational"), (150.0, 8, "fisheye"),
+                                                   (100.0, 5, "pinhole"), (150.0, 5, "fisheye")])
+def test_the_likely_model_is_named_before_the_cross_validation(monkeypatch, hfov: float, n: int, likely: str) -> None:
+    """The session starts the likely model's final solve on being told (app/session_finish.py); it must be
+    told before any half is solved, and name the model chosen whenever that is within the margin."""
+    log = stand_in(monkeypatch, {"pinhole": 0.3, "rational": 0.3, "fisheye": 0.3}, hfov=hfov)
+    told = []
+    choice = choose_model(views_of("webcam720", 0, n=n), SIZE, on_likely=lambda model: told.append((model, len(log))))
+    assert told == [(likely, 0)]
+    assert choice.chosen == likely

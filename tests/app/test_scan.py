@@ -205,3 +205,34 @@ def test_a_final_solve_that_cannot_start_with_the_repeats_falls_back_and_says_so
     result = session.finish()
     assert 3 <= len(result.calibration.views) <= 20  # the distinct poses (or the live-kept frames)
     assert any("could not start with all" in reason for reason in result.verdict.reasons)
+
+
+def test_a_final_solve_started_on_a_model_not_chosen_is_discarded(
+        recordings_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The robust solve of the likely model runs beside the model choice (app/session_finish.py); when
+    # another model wins, the chosen one is solved and the result is the one solving after the choice gives.
+    from calibcoach.app import session_finish
+
+    folder = _held_folder(recordings_dir, tmp_path, [0, 30, 66, 114, 72, 102], hold=8)
+    settings = SessionSettings(selector=SelectorSettings(max_frames=6), stop_when_done=False)
+    real_choose, real_robust = session_finish.choose_model, session_finish.robust_calibrate
+    solved_models = []
+
+    def logged_robust(views, image_size, model, **kwargs):
+        solved_models.append(model)
+        return real_robust(views, image_size, model, **kwargs)
+
+    monkeypatch.setattr(session_finish, "robust_calibrate", logged_robust)
+    results = {}
+    for told in (None, "rational"):
+        def choose(views, image_size, *, on_likely=None, told=told):
+            return real_choose(views, image_size, on_likely=on_likely if told is None else (lambda _m: on_likely(told)))
+
+        monkeypatch.setattr(session_finish, "choose_model", choose)
+        session, _stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
+        solved_models.clear()
+        results[told] = session.finish().calibration
+        assert sorted(solved_models) == (["pinhole"] if told is None else ["pinhole", "rational"])
+    a, b = results[None], results["rational"]
+    assert a.camera.model == b.camera.model == "pinhole"
+    assert np.array_equal(a.camera.camera_matrix, b.camera.camera_matrix) and a.rms_px == b.rms_px
