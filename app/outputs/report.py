@@ -12,7 +12,8 @@ uncertainty map, undistorted check image), and `report.html` holding all of it f
 from __future__ import annotations
 
 import io
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -76,60 +77,70 @@ def write_session_outputs(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cal = result.calibration
-    camera = cal.camera
     written: list[Path] = []
     for stale in CAMERA_FILES:  # never leave an earlier run's camera beside this result
         for name in (stale, untrusted_name(stale)):
             (out_dir / name).unlink(missing_ok=True)
     (out_dir / UNTRUSTED_NOTE).unlink(missing_ok=True)
-    trusted = bool(result.verdict.trusted)
-    suffix = "" if trusted else "_untrusted"
-    coverage_summary = result.coverage.summary()
-    coverage_summary["rejections"] = {k: v for k, v in result.rejections.items() if v}
-    coverage_summary["frames_seen"] = result.frames_seen
-    payload = calibration_payload(
-        cal,
-        verdict=result.verdict,
-        model_choice=result.model_choice,
-        uncertainty=result.uncertainty,
-        coverage_summary=coverage_summary,
-        board=result.board,
-        source=source_summary(source_info, frames_read=frames_read, replay_seconds=replay_seconds, stopped_early=stopped_early),
-        command_line=command_line,
-        lens_state=dict(source_info.controls) if lens_state is None else lens_state,
-    )
-    payload["uncertainty"]["target_px"] = result.target_px
-    payload["uncertainty"]["noise_px"] = result.noise_px
-    written.append(write_calibration_json(out_dir / "calibration.json", payload))
-    if trusted or accept_partial:
-        # A refused calibration writes nothing a downstream tool would load as a camera; with
-        # --accept-partial every such file carries "untrusted" in its name and, where the format
-        # can hold it, says so inside with the verdict's reasons.
-        because = [] if trusted else list(result.verdict.reasons)
-        written += list(write_npy(out_dir, camera, suffix=suffix))
-        extra: dict[str, object] = {
-            "frames_used": len(cal.views),
-            "verdict": result.verdict.grade,
-            "trusted": trusted,
-            "expected_error_px": result.uncertainty.expected_error_px,
-            "uncertainty_p95_covered_px": result.uncertainty.p95_covered_px,
-            "uncertainty_p95_whole_image_px": result.uncertainty.p95_px,
-        }
-        if because:
-            extra["untrusted_because"] = because
-        written.append(write_opencv_yaml(out_dir / f"calibration{suffix}.yaml", camera, rms_px=cal.rms_px, extra=extra))
-        written.append(write_ros_camera_info(out_dir / f"camera_info{suffix}.yaml", camera,
-                                             camera_name=source_info.camera_id or "camera", untrusted_because=because))
-        written.append(write_board_poses(out_dir / f"board_poses{suffix}.json", cal, untrusted_because=because))
-        if because:
-            note = ("This calibration was REFUSED by calibcoach and written only because --accept-partial was given.\n"
-                    "Its camera files carry 'untrusted' in their names. Why:\n" + "".join(f"- {r}\n" for r in because))
-            written.append(atomic_write_bytes(out_dir / UNTRUSTED_NOTE, note.encode("utf-8")))
-    written.append(write_detections(out_dir / "detections.npz", cal.views))
-    pictures = _pictures(out_dir, result)
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="pictures") as pool:
+        drawn = _pictures(out_dir, result, pool)  # drawn while the files below are written
+        coverage_summary = result.coverage.summary()
+        coverage_summary["rejections"] = {k: v for k, v in result.rejections.items() if v}
+        coverage_summary["frames_seen"] = result.frames_seen
+        payload = calibration_payload(
+            cal,
+            verdict=result.verdict,
+            model_choice=result.model_choice,
+            uncertainty=result.uncertainty,
+            coverage_summary=coverage_summary,
+            board=result.board,
+            source=source_summary(source_info, frames_read=frames_read, replay_seconds=replay_seconds, stopped_early=stopped_early),
+            command_line=command_line,
+            lens_state=dict(source_info.controls) if lens_state is None else lens_state,
+        )
+        payload["uncertainty"]["target_px"] = result.target_px
+        payload["uncertainty"]["noise_px"] = result.noise_px
+        written.append(write_calibration_json(out_dir / "calibration.json", payload))
+        if result.verdict.trusted or accept_partial:
+            written += _camera_files(out_dir, result, camera_name=source_info.camera_id or "camera")
+        written.append(write_detections(out_dir / "detections.npz", cal.views))
+        pictures = [picture.result() for picture in drawn]
     written += pictures
     # the person's page, refused or not (it is a report, not a camera file: never in CAMERA_FILES)
     written.append(write_html_report(out_dir / REPORT_NAME, payload, pictures, accept_partial=accept_partial))
+    return written
+
+
+def _camera_files(out_dir: Path, result: SessionResult, *, camera_name: str) -> list[Path]:
+    """The files other tools load as this camera; "_untrusted" in their names (and the verdict's
+    reasons inside, where the format can hold them) unless the verdict trusted the calibration."""
+    cal, camera = result.calibration, result.calibration.camera
+    trusted = bool(result.verdict.trusted)
+    suffix = "" if trusted else "_untrusted"
+    written: list[Path] = []
+    # A refused calibration writes nothing a downstream tool would load as a camera; with
+    # --accept-partial every such file carries "untrusted" in its name and, where the format
+    # can hold it, says so inside with the verdict's reasons.
+    because = [] if trusted else list(result.verdict.reasons)
+    written += list(write_npy(out_dir, camera, suffix=suffix))
+    extra: dict[str, object] = {
+        "frames_used": len(cal.views),
+        "verdict": result.verdict.grade,
+        "trusted": trusted,
+        "expected_error_px": result.uncertainty.expected_error_px,
+        "uncertainty_p95_covered_px": result.uncertainty.p95_covered_px,
+        "uncertainty_p95_whole_image_px": result.uncertainty.p95_px,
+    }
+    if because:
+        extra["untrusted_because"] = because
+    written.append(write_opencv_yaml(out_dir / f"calibration{suffix}.yaml", camera, rms_px=cal.rms_px, extra=extra))
+    written.append(write_ros_camera_info(out_dir / f"camera_info{suffix}.yaml", camera,
+                                         camera_name=camera_name, untrusted_because=because))
+    written.append(write_board_poses(out_dir / f"board_poses{suffix}.json", cal, untrusted_because=because))
+    if because:
+        note = ("This calibration was REFUSED by calibcoach and written only because --accept-partial was given.\n"
+                "Its camera files carry 'untrusted' in their names. Why:\n" + "".join(f"- {r}\n" for r in because))
+        written.append(atomic_write_bytes(out_dir / UNTRUSTED_NOTE, note.encode("utf-8")))
     return written
 
 
@@ -173,35 +184,36 @@ def read_detections(path: Path) -> list[View]:
         ]
 
 
-def _pictures(out_dir: Path, result: SessionResult) -> list[Path]:
+def _pictures(out_dir: Path, result: SessionResult, pool: ThreadPoolExecutor) -> list[Future[Path]]:
+    """Each picture drawn and saved on `pool`, in the report's order (OpenCV's drawing, colour maps
+    and PNG encoding release the GIL, so they overlap each other and the files written meanwhile)."""
     cal = result.calibration
     size = cal.camera.image_size
     cov = result.coverage
-    paths = [save_png(out_dir / "coverage.png", coverage_picture(
-        size, [v.image_points_px for v in cal.views], cov.region_counts,
-        required=float(cov.requirements.corners_per_region_cell),
-    ))]
     req = cov.requirements
-    paths.append(save_png(out_dir / "tilt_distance.png", bars_picture([
-        ("tilt (views / views needed)", [c.replace("_", " ") for c in TILT_CELLS],
-         [cov.tilt_counts[c] / req.views_per_tilt_cell for c in TILT_CELLS]),
-        ("distance (views / views needed)", list(DISTANCE_CELLS),
-         [cov.distance_counts[c] / req.views_per_distance_cell for c in DISTANCE_CELLS]),
-    ], title="Tilt and distance coverage", subtitle="green: requirement met; top edge / right edge away = positive tilt")))
     hist = cov.tilt_histograms()
     tilt_labels = [f"{int(a)}..{int(b)}" for a, b in zip(TILT_HISTOGRAM_EDGES_DEG[:-1], TILT_HISTOGRAM_EDGES_DEG[1:], strict=True)]
-    paths.append(save_png(out_dir / "tilt_histogram.png", bars_picture([
-        ("tilt about the image x axis, deg", tilt_labels, [float(v) for v in hist["tilt_x"]]),
-        ("tilt about the image y axis, deg", tilt_labels, [float(v) for v in hist["tilt_y"]]),
-    ], title="Tilts of the frames used", subtitle="views per tilt bin (the method asks for 30-60 deg both ways)", y_label="views")))
-    points = np.concatenate([v.image_points_px for v in cal.views])
-    residuals = np.concatenate(cal.residuals_px)
-    paths.append(save_png(out_dir / "residuals.png", residual_map_picture(size, points, residuals)))
     labels = [v.frame_name or str(v.frame_index) for v in cal.views]
-    paths.append(save_png(out_dir / "per_frame_errors.png", per_frame_error_picture(labels, cal.per_view_rms_px)))
-    paths.append(save_png(out_dir / "uncertainty.png", uncertainty_picture(
-        result.uncertainty, target_px=result.target_px, image_size=size,
-    )))
+    drawings: list[tuple[str, Callable[[], np.ndarray]]] = [
+        ("coverage.png", lambda: coverage_picture(size, [v.image_points_px for v in cal.views], cov.region_counts,
+                                                  required=float(req.corners_per_region_cell))),
+        ("tilt_distance.png", lambda: bars_picture([
+            ("tilt (views / views needed)", [c.replace("_", " ") for c in TILT_CELLS],
+             [cov.tilt_counts[c] / req.views_per_tilt_cell for c in TILT_CELLS]),
+            ("distance (views / views needed)", list(DISTANCE_CELLS),
+             [cov.distance_counts[c] / req.views_per_distance_cell for c in DISTANCE_CELLS]),
+        ], title="Tilt and distance coverage", subtitle="green: requirement met; top edge / right edge away = positive tilt")),
+        ("tilt_histogram.png", lambda: bars_picture([
+            ("tilt about the image x axis, deg", tilt_labels, [float(v) for v in hist["tilt_x"]]),
+            ("tilt about the image y axis, deg", tilt_labels, [float(v) for v in hist["tilt_y"]]),
+        ], title="Tilts of the frames used", subtitle="views per tilt bin (the method asks for 30-60 deg both ways)",
+            y_label="views")),
+        ("residuals.png", lambda: residual_map_picture(size, np.concatenate([v.image_points_px for v in cal.views]),
+                                                       np.concatenate(cal.residuals_px))),
+        ("per_frame_errors.png", lambda: per_frame_error_picture(labels, cal.per_view_rms_px)),
+        ("uncertainty.png", lambda: uncertainty_picture(result.uncertainty, target_px=result.target_px, image_size=size)),
+    ]
     if result.check_image is not None:
-        paths.append(save_png(out_dir / "undistorted_check.png", undistorted_check_picture(result.check_image, cal.camera)))
-    return paths
+        check = result.check_image
+        drawings.append(("undistorted_check.png", lambda: undistorted_check_picture(check, cal.camera)))
+    return [pool.submit(lambda name=name, draw=draw: save_png(out_dir / name, draw())) for name, draw in drawings]
