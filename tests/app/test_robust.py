@@ -416,7 +416,8 @@ def test_a_fisheye_view_whose_pose_cannot_be_initialised_is_left_out_not_fatal()
                         max_off_axis_deg=80)[0]
     row = np.arange(6)  # one board row: six collinear corners
     line = View(99, "", IDS[row], camera.project(BOARD[row], r, t), BOARD[row])
-    with pytest.raises(CalibrationError, match="InitExtrinsics"):
+    # OpenCV 5.0 names the assertion (InitExtrinsics); 5.1 says the view's initial pose cannot be computed
+    with pytest.raises(CalibrationError, match="InitExtrinsics|initial pose"):
         solve([*views, line], camera.image_size, "fisheye")
     calibration = robust_calibrate([*views, line], camera.image_size, "fisheye")
     assert [d.frame_index for d in calibration.dropped_frames] == [99]
