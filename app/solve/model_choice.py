@@ -106,10 +106,11 @@ def choose_model(views: Sequence[View], image_size: tuple[int, int], *,
     hfov = estimate_hfov_deg(views, image_size)
     order = candidate_order(hfov)
     few = len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION
+    by_field_of_view = "fisheye" if hfov >= 120.0 else "pinhole"  # the choice where there is too little to cross-validate
     if on_likely is not None:
-        on_likely(("fisheye" if hfov >= 120.0 else "pinhole") if few else order[0])
+        on_likely(by_field_of_view if few else order[0])
     if few:
-        chosen = "fisheye" if hfov >= 120.0 else "pinhole"
+        chosen = by_field_of_view
         return ModelChoice(chosen, {}, (
             f"only {len(views)} views: too few to cross-validate, so the {chosen} model was taken from the "
             f"~{hfov:.0f} deg field of view (fewer parameters are safer on little data)"
