@@ -29,7 +29,7 @@ from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose
-from calibcoach.coverage.select import LookAlikeTable, accepted_view, look_alike_groups
+from calibcoach.coverage.select import AcceptedView, LookAlikeTable, accepted_view, look_alike_groups
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
@@ -128,16 +128,19 @@ class SessionFinish:
         # runs beside the model choice's cross-validation (OpenCV releases the GIL): its inputs do
         # not depend on the choice, so the result is the same as solving after it. Where another
         # model is chosen, it is left to finish unread and the chosen one solved here.
-        ahead: dict[str, Future[Calibration]] = {}
+        ahead: dict[str, Future[Calibration]] = {}  # the likely model -> its solve, once choose_model names it
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="solve-ahead")
+
+        def start(model: str) -> None:
+            ahead[model] = pool.submit(solve_with, offered_views, model)
+
         try:
             if self.settings.model == "auto":
                 # On the frames the budget of the live selection holds (distinct poses, then repeats of every
                 # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
                 # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational
                 # lens was solved as a fisheye 0.7 px off on 2 of 5 renders; on all 400 the halves share poses.
-                choice = choose_model(choice_views, self.image_size, on_likely=lambda model: ahead.setdefault(
-                    model, pool.submit(solve_with, offered_views, model)))
+                choice = choose_model(choice_views, self.image_size, on_likely=start)
             else:
                 choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
             stage("robust solve")
@@ -220,12 +223,7 @@ class SessionFinish:
             self._information = marginal_information(raw.camera, self.views, raw.rvecs, raw.tvecs)
         offered = [*self.views, *(v for v, _q in self._reserve)]
         row = {id(view): i for i, view in enumerate(offered)}
-        looks = []
-        for view in offered:
-            det = view_detection(view)
-            pose = self._pose(det)
-            looks.append(None if pose is None else accepted_view(view.frame_index, det, pose))
-        table = LookAlikeTable(looks, self.settings.selector, float(np.hypot(*self.image_size)))
+        table = LookAlikeTable(self._looks(offered, self.camera), self.settings.selector, float(np.hypot(*self.image_size)))
 
         def alike(a: View, b: View) -> bool:
             return table(row[id(a)], row[id(b)])
@@ -238,10 +236,12 @@ class SessionFinish:
 
     def _look_alike_groups(self, views: Sequence[View], camera: CameraModel) -> list[int]:
         """Group number per view: frames showing the board at nearly the same place, size and tilt."""
-        looks = []
-        for view, pose in zip(views, self._poses_under(views, camera), strict=True):
-            looks.append(None if pose is None else accepted_view(view.frame_index, view_detection(view), pose))
-        return look_alike_groups(looks, self.settings.selector, float(np.hypot(*self.image_size)))
+        return look_alike_groups(self._looks(views, camera), self.settings.selector, float(np.hypot(*self.image_size)))
+
+    def _looks(self, views: Sequence[View], camera: CameraModel) -> list[AcceptedView | None]:
+        """What the look-alike test compares of each view, posed under `camera` (None: no pose)."""
+        return [None if pose is None else accepted_view(view.frame_index, view_detection(view), pose)
+                for view, pose in zip(views, self._poses_under(views, camera), strict=True)]
 
     def _poses_under(self, views: Sequence[View], camera: CameraModel) -> list[BoardPose | None]:
         """Each view's board pose under `camera`, kept for the next call with the same camera (the
