@@ -77,3 +77,26 @@ def test_crop_shifts_the_principal_point_only() -> None:
     np.testing.assert_array_equal(crop.dist_coeffs, camera.dist_coeffs)
     with pytest.raises(ValueError, match="does not fit"):
         camera.cropped(300, 0, 1080, 720)
+
+
+@pytest.mark.parametrize("model", ["pinhole", "rational", "fisheye"])
+def test_many_points_project_as_opencv_projects_them(model: str) -> None:
+    """Large batches take the NumPy path (OpenCV's bindings always compute the Jacobian); it must be OpenCV's formula."""
+    rng = np.random.default_rng(7)
+    coeffs = {"pinhole": 5, "rational": 8, "fisheye": 4}[model]
+    for _ in range(20):
+        K = np.array([[rng.uniform(300, 1500), 0.0, rng.uniform(300, 900)], [0.0, rng.uniform(300, 1500), rng.uniform(200, 600)],
+                      [0.0, 0.0, 1.0]])
+        camera = CameraModel(model, K, rng.normal(0.0, 0.1, coeffs), (1280, 720))
+        points = rng.normal(0.0, 0.5, (300, 3)) + [0.0, 0.0, 2.0]
+        rvec, tvec = rng.normal(0.0, 0.4, 3), rng.normal(0.0, 0.2, 3)
+        if model == "fisheye":
+            expected, _ = cv2.fisheye.projectPoints(points.reshape(1, -1, 3), rvec.reshape(1, 1, 3), tvec.reshape(1, 1, 3),
+                                                    K, camera.dist_coeffs)
+        else:
+            expected, _ = cv2.projectPoints(points, rvec, tvec, K, camera.opencv_dist())
+        got = camera.project(points, rvec, tvec)
+        assert got.shape == (300, 2)
+        np.testing.assert_allclose(got, expected.reshape(-1, 2), rtol=1e-11, atol=1e-9)
+        # and the few-point path (OpenCV itself) agrees with the batch
+        np.testing.assert_allclose(camera.project(points[:5], rvec, tvec), got[:5], rtol=1e-11, atol=1e-9)
