@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
+from calibcoach.app.scan_process import fork_available, scanned_in_child
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -63,6 +64,35 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     yield from scan
 
 
+@dataclass
+class _ChildCounts:
+    """What the scan in the child process counted, as it last said."""
+
+    tracked: int = 0
+
+
+def _scanned_in_child(source: FrameSource, board: BoardSpec, counts: _ChildCounts, *, settle: CharucoBoardDetector,
+                      workers: int, every_frame: bool) -> Iterator[Seen]:
+    """`detected_frames` run in a child process; the print's variant, the scan's counts and the
+    source's unreadable frames are mirrored into `settle`, `counts` and `source.skipped` as they come."""
+    width, height = source.info.image_size or (0, 0)
+    scans: list[HeldFrameScan] = []
+
+    def make_seen() -> Iterator[Seen]:  # runs in the child, on its copies of source and settle
+        return detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
+
+    def state() -> tuple:  # in the child
+        variant = (bool(settle.spec.legacy), bool(settle.spec.inverted)) if settle.settled else None
+        return variant, sum(scan.tracked for scan in scans), list(source.skipped)
+
+    def apply_state(child_state: tuple) -> None:  # in the parent
+        variant, counts.tracked, source.skipped = child_state
+        if variant is not None and not settle.settled:
+            settle.settle(legacy=variant[0], inverted=variant[1])
+
+    return scanned_in_child(make_seen, width * height * 3, state=state, apply_state=apply_state)
+
+
 def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterator[tuple[Frame, Detection]]:
     """Detect one by one until the print's legacy/inverted variant is known (or enough frames tried)."""
     for frame in frames:
@@ -86,11 +116,14 @@ def run_replay(
     workers: int = 2,
     on_outcome: Callable[[FrameOutcome, Frame], None] | None = None,
     every_frame: bool = False,
+    in_child: bool = True,
 ) -> tuple[CalibrationSession, ReplayStats]:
     """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
 
     Held boards are tracked rather than detected anew (app/scan.py) unless `every_frame`; the
     tracked frames of a hold the session judged usable join its reserve for the final solve.
+    Footage (folders, videos) is scanned in a child process beside the session
+    (app/scan_process.py) unless `in_child` is False; the decisions are the same either way.
     """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
@@ -99,13 +132,18 @@ def run_replay(
                    focus_events=focus_events(info.events))
     start = time.perf_counter()
     scans: list[HeldFrameScan] = []
-    feed.run(detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame))
+    if info.kind in TRACKED_KINDS and info.image_size is not None and in_child and fork_available():
+        counts = _ChildCounts()
+        feed.run(_scanned_in_child(source, board, counts, settle=settle, workers=workers, every_frame=every_frame))
+        tracked = counts.tracked
+    else:
+        feed.run(detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame))
+        tracked = sum(scan.tracked for scan in scans)
     session = feed.session
     if session is None:
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
-    tracked = sum(scan.tracked for scan in scans)
     redetector = None if feed.assistant is None else feed.assistant.redetector
     return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
                                 settle.variant_found, tracked, None if redetector is None else redetector.counts)

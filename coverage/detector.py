@@ -160,10 +160,11 @@ class CharucoBoardDetector:
         assert best is not None
         legacy, inverted, det = best
         if det.corner_count >= 6:
-            self._settle(legacy=legacy, inverted=inverted)
+            self.settle(legacy=legacy, inverted=inverted)
         return det
 
-    def _settle(self, *, legacy: bool, inverted: bool) -> None:
+    def settle(self, *, legacy: bool, inverted: bool) -> None:
+        """Take the print's variant as known (found here, or by a detector in another process)."""
         self.spec = self.spec.with_detected(legacy=legacy, inverted=inverted)
         self._detector = self._make(legacy=legacy, inverted=inverted)
         self._board = self.spec.cv_board(legacy=legacy)

@@ -1,0 +1,131 @@
+"""The replay's scan in a process of its own: decoding, detection and tracking beside the session.
+
+A replay runs two kinds of work: the scan (decode every frame, thumbnail it, detect or track the
+board: app/scan.py) and the session's judgement of what the scan saw (app/session.py). Both are
+Python driving many short OpenCV and NumPy calls, and in one process they share one GIL: every
+OpenCV call releases it, and getting it back waits for whichever other thread is running Python
+at that moment. On a 784-frame 720p folder the session's thread used 2.1 s of CPU but took 3.4 s
+beside the scan's threads, and the scan in its own process brought the whole read from 4.3 s to
+3.5 s with the same decisions (OpenCV 5.1, 2 cores).
+
+So footage is scanned in a forked child process. The child runs the very generator a replay runs
+in process (`detected_frames`); each frame's pixels go through a ring of shared-memory slots
+(a semaphore counts the free ones, so the child never runs more than the ring ahead) and the rest
+of what it saw through a pipe, in order. The parent copies the pixels out (0.1 ms at 720p) and
+frees the slot, so frames it keeps (a hold waiting for its judgement) never pin the ring.
+
+State the child learns that the parent needs (the print's settled variant, the scan's counters,
+frames the source could not decode) is sent with every frame and handed to `apply_state` before
+the frame is yielded, so the parent sees it exactly when an in-process scan would have shown it.
+
+Closing the iterator (the stop rule, Ctrl-C, an error in the session) ends the child. The child
+ignores SIGINT, so Ctrl-C reaches only the parent, which stops reading and keeps what it accepted.
+Where `fork` is not available, `fork_available()` says so and the caller scans in process.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from multiprocessing import shared_memory
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from calibcoach.app.scan import Seen
+from calibcoach.drivers.base import Frame, frames_ahead
+
+_POLL_S = 0.5  # how often a waiting side checks that the other is still there
+
+
+def fork_available() -> bool:
+    return "fork" in multiprocessing.get_all_start_methods()
+
+
+def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
+                     state: Callable[[], Any], apply_state: Callable[[Any], None]) -> Iterator[Seen]:
+    """The `Seen` frames of `make_seen()`, produced in a forked child process (see the module docstring).
+
+    Args:
+        make_seen: called in the child; its frames must hold images of at most `frame_bytes`.
+        frame_bytes: the size of the largest frame (a BGR frame at the source's size).
+        state: called in the child after each frame; a small picklable value.
+        apply_state: called in the parent with that value before the frame is yielded, and at the end.
+
+    Raises:
+        Whatever `make_seen` raised in the child (its own exception where it pickles), or
+        RuntimeError when the child died without saying why (killed, out of memory).
+    """
+    slots = frames_ahead(frame_bytes)
+    context = multiprocessing.get_context("fork")
+    memory = shared_memory.SharedMemory(create=True, size=slots * frame_bytes)
+    ring = np.ndarray((slots, frame_bytes), np.uint8, memory.buf)
+    free = context.Semaphore(slots)
+    receiving, sending = context.Pipe(duplex=False)
+    child = context.Process(target=_produce, args=(make_seen, state, sending, free, ring, os.getpid()),
+                            name="calibcoach-scan", daemon=True)
+    child.start()
+    sending.close()  # the child holds the sending end: the parent sees EOF when it exits
+    try:
+        while True:
+            try:
+                message = receiving.recv()
+            except EOFError:
+                child.join(timeout=5.0)
+                raise RuntimeError(f"the scan process ended without finishing (exit code {child.exitcode}); "
+                                   "run again, or pass --every-frame to scan in one process") from None
+            kind = message[0]
+            if kind == "frame":
+                _kind, slot, shape, (index, timestamp_ns, name, controls), seen, child_state = message
+                size = int(np.prod(shape))
+                image = ring[slot, :size].reshape(shape).copy()
+                free.release()
+                apply_state(child_state)
+                yield replace(seen, frame=Frame(index, timestamp_ns, image, name, MappingProxyType(controls)))
+            elif kind == "end":
+                apply_state(message[1])
+                return
+            else:  # "error"
+                apply_state(message[2])
+                raise message[1]
+    finally:
+        if child.is_alive():
+            child.terminate()
+        child.join()
+        receiving.close()
+        del ring
+        memory.close()
+        memory.unlink()
+
+
+def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,
+             free: Any, ring: np.ndarray, parent_pid: int) -> None:
+    """The child: scan, and hand every frame over in order (runs after fork; exits with the parent's pipe)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle: it ends this process
+    slots, frame_bytes = ring.shape
+    try:
+        for count, seen in enumerate(make_seen()):
+            image = np.ascontiguousarray(seen.frame.image)
+            if image.nbytes > frame_bytes:
+                raise ValueError(f"frame {seen.frame.index} is {image.shape}, larger than the source's "
+                                 f"{frame_bytes} bytes a frame")
+            while not free.acquire(timeout=_POLL_S):
+                if os.getppid() != parent_pid:  # the parent died without ending this process
+                    return
+            slot = count % slots
+            ring[slot, : image.nbytes] = image.reshape(-1)
+            frame = seen.frame
+            sending.send(("frame", slot, image.shape, (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls)),
+                          replace(seen, frame=None), state()))
+        sending.send(("end", state()))
+    except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
+        try:
+            sending.send(("error", exc, state()))
+        except Exception:  # noqa: BLE001 - the exception does not pickle: its words do
+            sending.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}"), state()))
+    finally:
+        sending.close()

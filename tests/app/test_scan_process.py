@@ -1,0 +1,88 @@
+"""The scan in a child process: the same frames and decisions as in process, errors and early stops
+reach the parent, nothing is left running or allocated."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.app.replay import run_replay
+from calibcoach.app.scan_process import fork_available, scanned_in_child
+from calibcoach.app.session import SessionSettings
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.select import SelectorSettings
+from calibcoach.drivers.replay import ImageFolderSource
+
+pytestmark = pytest.mark.skipif(not fork_available(), reason="the scan runs in a child process only where fork exists")
+
+
+def _folder(recordings_dir: Path, folder: Path, frames: int = 60) -> Path:
+    """The demo capture's first frames as a plain image folder (footage: scanned with tracking)."""
+    folder.mkdir()
+    for index in range(frames):
+        grey = cv2.imread(str(recordings_dir / "demo_webcam720_careful" / "frames" / f"{index:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(folder / f"{index:04d}.png"), grey)
+    return folder
+
+
+def _decisions(recordings_dir: Path, folder: Path, *, in_child: bool) -> list[tuple]:
+    got: list[tuple] = []
+    settings = SessionSettings(selector=SelectorSettings(max_frames=8), stop_when_done=False)
+    session, stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings, in_child=in_child,
+                                on_outcome=lambda o, f: got.append((o.frame_index, o.decision.accepted, o.decision.reason,
+                                                                    o.detection.corners_px.tobytes(), f.image.sum())))
+    return [*got, ("tracked", stats.tracked, "variant", stats.variant_found, "seen", session.frames_seen,
+                   "reserve", len(session._reserve))]
+
+
+def test_a_child_scan_decides_every_frame_as_the_scan_in_process(recordings_dir: Path, tmp_path: Path) -> None:
+    folder = _folder(recordings_dir, tmp_path / "frames")
+    in_child = _decisions(recordings_dir, folder, in_child=True)
+    in_process = _decisions(recordings_dir, folder, in_child=False)
+    assert len(in_child) > 20 and in_child[-1][1] > 0  # frames were judged, some tracked
+    assert in_child == in_process  # same frames, same pixels, same corners, same decisions and counts
+
+
+def test_an_error_in_the_child_is_raised_in_the_parent() -> None:
+    def failing():
+        raise ValueError("frame 3 is damaged")
+        yield  # pragma: no cover - makes this a generator
+
+    with pytest.raises(ValueError, match="frame 3 is damaged"):
+        list(scanned_in_child(failing, 64, state=lambda: None, apply_state=lambda _s: None))
+
+
+def test_a_child_that_dies_is_reported_not_waited_for() -> None:
+    def dying():
+        os._exit(9)
+        yield  # pragma: no cover
+
+    with pytest.raises(RuntimeError, match="exit code 9"):
+        list(scanned_in_child(dying, 64, state=lambda: None, apply_state=lambda _s: None))
+
+
+def test_stopping_early_ends_the_child_and_frees_the_ring(recordings_dir: Path, tmp_path: Path) -> None:
+    from calibcoach.app.scan import Seen
+    from calibcoach.coverage.detector import Detection
+    from calibcoach.drivers.base import Frame
+
+    def endless():
+        index = 0
+        while True:  # far more frames than the ring holds: the child blocks until the parent reads
+            yield Seen(Frame(index, index, np.full((4, 4), index % 256, np.uint8)), Detection.empty(), None, None)
+            index += 1
+
+    states = []
+    stream = scanned_in_child(endless, 16, state=lambda: "running", apply_state=states.append)
+    first = [next(stream) for _ in range(100)]
+    assert [int(s.frame.image[0, 0]) for s in first] == [i % 256 for i in range(100)]  # in order, pixels intact
+    assert states == ["running"] * 100
+    stream.close()
+    assert multiprocessing.active_children() == []
+    leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("psm_")] if os.path.isdir("/dev/shm") else []
+    assert leftovers == []
