@@ -90,14 +90,25 @@ def scene_change(before: np.ndarray, after: np.ndarray) -> float:
 
 
 def _spread(values: np.ndarray, low_pct: float, high_pct: float) -> float:
-    """np.percentile(values, high_pct) - np.percentile(values, low_pct), from one partial sort (~10x cheaper)."""
+    """np.percentile(values, high_pct) - np.percentile(values, low_pct) of a thumbnail, exactly, from its histogram.
+
+    Thumbnails hold whole grey levels (an area resize of uint8 pixels), so the sorted values the
+    percentiles interpolate between are read off the cumulative histogram (~10x cheaper than a
+    partial sort, ~20x than np.percentile; every frame of a replay pays it).
+    """
     flat = values.ravel()
-    lo, hi = (p / 100.0 * (flat.size - 1) for p in (low_pct, high_pct))
-    i, j = int(lo), int(hi)
-    part = np.partition(flat, sorted({i, min(i + 1, flat.size - 1), j, min(j + 1, flat.size - 1)}))
-    low = part[i] + (part[min(i + 1, flat.size - 1)] - part[i]) * (lo - i)
-    high = part[j] + (part[min(j + 1, flat.size - 1)] - part[j]) * (hi - j)
-    return float(high - low)
+    counts = np.cumsum(np.bincount(flat.astype(np.intp), minlength=256))
+
+    def sorted_value(k: int) -> float:  # the k-th smallest value (0-based)
+        return float(np.searchsorted(counts, k, side="right"))
+
+    def percentile(pct: float) -> float:
+        position = pct / 100.0 * (flat.size - 1)
+        below = int(position)
+        value = sorted_value(below)
+        return value + (sorted_value(min(below + 1, flat.size - 1)) - value) * (position - below)
+
+    return percentile(high_pct) - percentile(low_pct)
 
 
 class HeldFrameScan:

@@ -339,8 +339,13 @@ def covered_region_mask(image_size: tuple[int, int], corner_sets: Sequence[np.nd
     mask = np.zeros(pts.shape[0], bool)
     for corners in corner_sets:
         c = np.asarray(corners, np.float32).reshape(-1, 2)
-        todo = np.flatnonzero(~mask)  # only points no view covered yet (a final solve has hundreds of views)
-        if c.shape[0] and todo.size:
+        if not c.shape[0]:
+            continue
+        # only points no view covered yet (a final solve has hundreds of views) and within reach of
+        # this one's bounding box: the hull test of the rest could not come out true
+        low, high = c.min(axis=0) - radius, c.max(axis=0) + radius
+        todo = np.flatnonzero(~mask & np.all((pts >= low) & (pts <= high), axis=1))
+        if todo.size:
             hull = cv2.convexHull(c).reshape(-1, 2).astype(np.float64)
             mask[todo] = _distance_to_convex(pts[todo], hull) <= radius
     return mask.reshape(gy.size, gx.size)
