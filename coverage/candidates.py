@@ -115,15 +115,14 @@ def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, 
     """
     rows, cols = grid_shape
     w, h = image_size
-    reach = np.zeros((rows, cols))
-    for cand in candidates:
-        px = cand.view.image_points_px
-        r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
-        c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
-        counts = np.zeros((rows, cols))
-        np.add.at(counts, (r, c), 1.0)
-        reach = np.maximum(reach, counts)
-    return reach >= need
+    if not candidates:
+        return np.zeros((rows, cols), bool)
+    px = np.concatenate([cand.view.image_points_px.reshape(-1, 2) for cand in candidates])
+    owner = np.repeat(np.arange(len(candidates)), [cand.view.image_points_px.shape[0] for cand in candidates])
+    r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
+    c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
+    counts = np.bincount(owner * rows * cols + r * cols + c, minlength=len(candidates) * rows * cols)
+    return counts.reshape(len(candidates), rows, cols).max(axis=0) >= need  # most corners one candidate puts in a cell
 
 
 def lens_moved_px(a: CameraModel, b: CameraModel) -> float:

@@ -16,6 +16,7 @@ would add, which is what frame selection is built on.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,26 @@ TILT_CELLS = ("frontal", *TILT_DIRECTIONS, "steep_x", "steep_y")
 DISTANCE_CELLS = ("far", "near")
 TILT_HISTOGRAM_EDGES_DEG = (-90.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 90.0)
 _AXIS_WEIGHTS = {"region": 0.5, "tilt": 0.3, "distance": 0.2}
+
+
+def _tilt_cells(tilt_deg: float, tilt_x_deg: float, tilt_y_deg: float) -> tuple[str, ...]:
+    """The tilt cells a view at this tilt (angle to the line of sight, and about each image axis) counts for."""
+    cells: list[str] = []
+    if tilt_deg < 15.0:
+        cells.append("frontal")
+    if tilt_x_deg >= TILT_STEER_DEG:
+        cells.append("top_away")
+    if tilt_x_deg <= -TILT_STEER_DEG:
+        cells.append("bottom_away")
+    if tilt_y_deg >= TILT_STEER_DEG:
+        cells.append("right_away")
+    if tilt_y_deg <= -TILT_STEER_DEG:
+        cells.append("left_away")
+    if abs(tilt_x_deg) >= TILT_STEEP_DEG:
+        cells.append("steep_x")
+    if abs(tilt_y_deg) >= TILT_STEEP_DEG:
+        cells.append("steep_y")
+    return tuple(cells)
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,31 +114,35 @@ class CoverageMap:
 
     # --- what a frame would add ---------------------------------------------------------------
     def contribution(self, detection: Detection, pose: BoardPose | None) -> Contribution:
+        seen = None if pose is None else (pose.tilt_deg, pose.tilt_x_deg, pose.tilt_y_deg, pose.distance_m)
+        return self.contributions([detection.corners_px], [seen])[0]
+
+    def contributions(self, corner_sets: Sequence[np.ndarray],
+                      poses: Sequence[tuple[float, float, float, float] | None]) -> list[Contribution]:
+        """`contribution` of many frames at once (the candidate poses are ranked by hundreds).
+
+        Args:
+            corner_sets: per frame (N, 2) corner pixels.
+            poses: per frame (tilt, tilt_x, tilt_y, distance_m) as `BoardPose` has them, or None (no pose).
+        """
         w, h = self.image_size
-        cols = np.clip((detection.corners_px[:, 0] / w * self.cols).astype(int), 0, self.cols - 1)
-        rows = np.clip((detection.corners_px[:, 1] / h * self.rows).astype(int), 0, self.rows - 1)
-        counts = np.zeros((self.rows, self.cols))
-        np.add.at(counts, (rows, cols), 1.0)
-        if pose is None:
-            return Contribution(counts, (), None, 0.0, 0.0, has_pose=False)
-        cells: list[str] = []
-        tx, ty = pose.tilt_x_deg, pose.tilt_y_deg
-        if pose.tilt_deg < 15.0:
-            cells.append("frontal")
-        if tx >= TILT_STEER_DEG:
-            cells.append("top_away")
-        if tx <= -TILT_STEER_DEG:
-            cells.append("bottom_away")
-        if ty >= TILT_STEER_DEG:
-            cells.append("right_away")
-        if ty <= -TILT_STEER_DEG:
-            cells.append("left_away")
-        if abs(tx) >= TILT_STEEP_DEG:
-            cells.append("steep_x")
-        if abs(ty) >= TILT_STEEP_DEG:
-            cells.append("steep_y")
-        cell = self.ranges.cell(pose.distance_m)
-        return Contribution(counts, tuple(cells), cell if cell in DISTANCE_CELLS else None, tx, ty)
+        cells = self.rows * self.cols
+        sizes = [len(c) for c in corner_sets]
+        px = np.concatenate([np.asarray(c, np.float64).reshape(-1, 2) for c in corner_sets]) if corner_sets else np.zeros((0, 2))
+        cols = np.clip((px[:, 0] / w * self.cols).astype(int), 0, self.cols - 1)
+        rows = np.clip((px[:, 1] / h * self.rows).astype(int), 0, self.rows - 1)
+        owner = np.repeat(np.arange(len(corner_sets)), sizes)
+        counts = np.bincount(owner * cells + rows * self.cols + cols, minlength=len(corner_sets) * cells)
+        counts = counts.astype(np.float64).reshape(len(corner_sets), self.rows, self.cols)
+        made = []
+        for region_counts, pose in zip(counts, poses, strict=True):
+            if pose is None:
+                made.append(Contribution(region_counts, (), None, 0.0, 0.0, has_pose=False))
+                continue
+            tilt, tx, ty, distance_m = pose
+            cell = self.ranges.cell(distance_m)
+            made.append(Contribution(region_counts, _tilt_cells(tilt, tx, ty), cell if cell in DISTANCE_CELLS else None, tx, ty))
+        return made
 
     def gain(self, c: Contribution, *, region_only: bool = False) -> float:
         """How much of the unmet requirements this frame would fill, 0..1 of the whole map.
@@ -125,19 +150,23 @@ class CoverageMap:
         `region_only` scores the image regions alone: a look-alike of a kept frame must not fill
         the "second view" of a tilt or distance cell, which asks for another view, not a copy.
         """
+        return float(self.gains([c], region_only=region_only)[0])
+
+    def gains(self, contributions: Sequence[Contribution], *, region_only: bool = False) -> np.ndarray:
+        """`gain` of each contribution on its own, (K,) float64."""
         req = self.requirements
         need = req.corners_per_region_cell
+        if not contributions:
+            return np.zeros(0)
         before = np.minimum(self.region_counts / need, 1.0)
-        after = np.minimum((self.region_counts + c.region_counts) / need, 1.0)
-        region = float(np.sum((after - before) * self.region_weights))
+        after = np.minimum((self.region_counts + np.stack([c.region_counts for c in contributions])) / need, 1.0)
+        region = np.sum((after - before) * self.region_weights, axis=(1, 2))
         if region_only:
             return _AXIS_WEIGHTS["region"] * region
-        tilt = sum(1.0 for cell in c.tilt_cells if self.tilt_counts[cell] < req.views_per_tilt_cell) / (
-            len(TILT_CELLS) * req.views_per_tilt_cell
-        )
-        distance = 0.0
-        if c.distance_cell is not None and self.distance_counts[c.distance_cell] < req.views_per_distance_cell:
-            distance = 1.0 / (len(DISTANCE_CELLS) * req.views_per_distance_cell)
+        tilt = np.array([sum(1.0 for cell in c.tilt_cells if self.tilt_counts[cell] < req.views_per_tilt_cell)
+                         for c in contributions]) / (len(TILT_CELLS) * req.views_per_tilt_cell)
+        distance = np.array([1.0 if c.distance_cell is not None and self.distance_counts[c.distance_cell] < req.views_per_distance_cell
+                             else 0.0 for c in contributions]) / (len(DISTANCE_CELLS) * req.views_per_distance_cell)
         return _AXIS_WEIGHTS["region"] * region + _AXIS_WEIGHTS["tilt"] * tilt + _AXIS_WEIGHTS["distance"] * distance
 
     def add(self, c: Contribution, footprint: float | None = None) -> None:

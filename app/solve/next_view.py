@@ -29,9 +29,7 @@ from calibcoach.app.solve.uncertainty import (
     view_jacobian,
 )
 from calibcoach.coverage.candidates import CandidatePose
-from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
-from calibcoach.coverage.pose import BoardPose, corner_footprint
 from calibcoach.drivers.lens import CameraModel
 
 COVERAGE_WORTH = 0.5  # filling all unmet coverage is worth as much as cutting E by half
@@ -75,21 +73,11 @@ def _cut(before: float, after: float) -> float:
     return float(max(0.0, 1.0 - np.sqrt(max(after, 0.0) / before)))
 
 
-def detection_of(candidate: CandidatePose) -> Detection:
-    """The detection a frame at the candidate pose would give (its virtual view's corners)."""
-    v = candidate.view
-    return Detection(v.image_points_px.astype(np.float32), v.ids, v.object_points_m.astype(np.float32),
-                     np.zeros(0, np.int32))
-
-
-def pose_of(candidate: CandidatePose, image_size: tuple[int, int]) -> BoardPose:
-    """The BoardPose a frame at the candidate pose would be measured with (no PnP: the pose is known)."""
-    v = candidate.view
+def _tilt_and_range(candidate: CandidatePose) -> tuple[float, float, float, float]:
+    """(tilt to the line of sight, tilt_x, tilt_y, distance_m) of a frame at the candidate pose, for
+    `CoverageMap.contributions` (no PnP: the pose is known)."""
     tilt = float(np.degrees(np.arccos(np.cos(np.radians(candidate.tilt_x_deg)) * np.cos(np.radians(candidate.tilt_y_deg)))))
-    return BoardPose(rvec=v.rvec, tvec=v.tvec, tilt_deg=tilt, tilt_x_deg=candidate.tilt_x_deg,
-                     tilt_y_deg=candidate.tilt_y_deg, distance_m=candidate.range_m,
-                     centre_px=v.image_points_px.mean(axis=0), footprint=corner_footprint(v.image_points_px, image_size),
-                     fit_rms_px=0.0)
+    return tilt, candidate.tilt_x_deg, candidate.tilt_y_deg, candidate.range_m
 
 
 def rank_poses(
@@ -118,11 +106,12 @@ def rank_poses(
         projectable = [bool(np.all(np.isfinite(Ji)) and np.all(np.isfinite(Jp))) for Ji, Jp in jacobians]
         considered = [c for c, ok in zip(considered, projectable, strict=True) if ok]
         cuts = error_cuts(information, weight, [j for j, ok in zip(jacobians, projectable, strict=True) if ok])
+    gains = np.zeros(len(considered))
+    if deficit > 1e-3 and considered:
+        gains = coverage.gains(coverage.contributions([c.view.image_points_px for c in considered],
+                                                      [_tilt_and_range(c) for c in considered]))
     ranked: list[RankedPose] = []
-    for cand, cut in zip(considered, cuts, strict=True):
-        gain = 0.0
-        if deficit > 1e-3:
-            gain = coverage.gain(coverage.contribution(detection_of(cand), pose_of(cand, camera.image_size)))
+    for cand, cut, gain in zip(considered, cuts, gains.tolist(), strict=True):
         score = cut + (COVERAGE_WORTH * gain / deficit if deficit > 1e-3 else 0.0)
         ranked.append(RankedPose(cand, cut, gain, score))
     ranked.sort(key=lambda r: -r.score)  # stable: equal scores keep the candidate order
