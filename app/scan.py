@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from calibcoach.coverage.detector import TRACK_MAX_SHIFT_PX, CharucoBoardDetector, Detection
+from calibcoach.coverage.sharpness import percentile_spread
 from calibcoach.drivers.base import Frame, frames_ahead
 
 # Every 15th frame (0.5 s at 30 fps) is detected in full: a hold of a second is judged by the
@@ -86,29 +87,7 @@ def thumbnail(grey: np.ndarray) -> np.ndarray:
 
 def scene_change(before: np.ndarray, after: np.ndarray) -> float:
     """Largest thumbnail cell change between two frames, as a share of the scene's contrast (p1 to p99)."""
-    return float(np.max(np.abs(after - before))) / max(_spread(after, 1.0, 99.0), 10.0)
-
-
-def _spread(values: np.ndarray, low_pct: float, high_pct: float) -> float:
-    """np.percentile(values, high_pct) - np.percentile(values, low_pct) of a thumbnail, exactly, from its histogram.
-
-    Thumbnails hold whole grey levels (an area resize of uint8 pixels), so the sorted values the
-    percentiles interpolate between are read off the cumulative histogram (~10x cheaper than a
-    partial sort, ~20x than np.percentile; every frame of a replay pays it).
-    """
-    flat = values.ravel()
-    counts = np.cumsum(np.bincount(flat.astype(np.intp), minlength=256))
-
-    def sorted_value(k: int) -> float:  # the k-th smallest value (0-based)
-        return float(np.searchsorted(counts, k, side="right"))
-
-    def percentile(pct: float) -> float:
-        position = pct / 100.0 * (flat.size - 1)
-        below = int(position)
-        value = sorted_value(below)
-        return value + (sorted_value(min(below + 1, flat.size - 1)) - value) * (position - below)
-
-    return percentile(high_pct) - percentile(low_pct)
+    return float(np.max(np.abs(after - before))) / max(percentile_spread(after, 1.0, 99.0), 10.0)
 
 
 class HeldFrameScan:
