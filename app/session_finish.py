@@ -28,7 +28,7 @@ from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.coverage.grid import CoverageMap
-from calibcoach.coverage.pose import estimate_pose
+from calibcoach.coverage.pose import estimate_pose, estimate_poses
 from calibcoach.coverage.select import AcceptedView, LookAlikeTable, accepted_view, look_alike_groups
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
@@ -248,9 +248,9 @@ class SessionFinish:
         look-alike groups and the final coverage both ask it of the final solve's hundreds of views)."""
         known = self._final_poses if self._final_poses is not None and self._final_poses[0] is camera else (camera, {})
         self._final_poses = known
-        for view in views:
-            if view.frame_index not in known[1]:
-                known[1][view.frame_index] = estimate_pose(view_detection(view), camera, self.geometry.centre_m)
+        new = [view for view in views if view.frame_index not in known[1]]
+        for view, pose in zip(new, estimate_poses([view_detection(v) for v in new], camera, self.geometry.centre_m), strict=True):
+            known[1][view.frame_index] = pose
         return [known[1][view.frame_index] for view in views]
 
     def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:

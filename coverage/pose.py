@@ -6,6 +6,7 @@ then; the image-space quantities (centre, footprint) never depend on the intrins
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -44,31 +45,53 @@ def estimate_pose(detection: Detection, camera: CameraModel, board_centre_m: np.
     when given (a person's sense of where the board is, also for partial views), else to the
     visible corners' centroid.
     """
-    if detection.corner_count < 4:
-        return None
-    rays = camera.unproject(detection.corners_px)
-    if np.any(rays[:, 2] <= 1e-3):
-        return None
-    normalised = (rays[:, :2] / rays[:, 2:3]).astype(np.float64).reshape(-1, 1, 2)
-    obj = detection.object_points_m.astype(np.float64).reshape(-1, 1, 3)
-    ok, rvec, tvec = cv2.solvePnP(obj, normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE if detection.corner_count >= 4 else 0)
-    if not ok or tvec[2, 0] <= 0:
-        return None
-    rvec, tvec = rvec.reshape(3), tvec.reshape(3)
-    projected = camera.project(detection.object_points_m, rvec, tvec)
-    fit_rms = float(np.sqrt(np.mean(np.sum((projected - detection.corners_px) ** 2, axis=1))))
-    R, _ = cv2.Rodrigues(rvec)
-    centre_board = detection.object_points_m.astype(np.float64).mean(axis=0) if board_centre_m is None else board_centre_m
-    centre_cam = R @ np.asarray(centre_board, np.float64).reshape(3) + tvec
-    tilt, tilt_x, tilt_y = tilt_against_sight_deg(R[:, 2], centre_cam)
-    return BoardPose(
-        rvec=rvec,
-        tvec=tvec,
-        tilt_deg=tilt,
-        tilt_x_deg=tilt_x,
-        tilt_y_deg=tilt_y,
-        distance_m=float(np.linalg.norm(centre_cam)),
-        centre_px=detection.corners_px.astype(np.float64).mean(axis=0),
-        footprint=corner_footprint(detection.corners_px, camera.image_size),
-        fit_rms_px=fit_rms,
-    )
+    return estimate_poses([detection], camera, board_centre_m)[0]
+
+
+def estimate_poses(detections: Sequence[Detection], camera: CameraModel,
+                   board_centre_m: np.ndarray | None = None) -> list[BoardPose | None]:
+    """`estimate_pose` of each detection; the rays and the fit are computed for all of them at once
+    (a final solve poses hundreds of views)."""
+    poses: list[BoardPose | None] = [None] * len(detections)
+    usable = [i for i, d in enumerate(detections) if d.corner_count >= 4]
+    if not usable:
+        return poses
+    sizes = [detections[i].corner_count for i in usable]
+    bounds = np.cumsum([0, *sizes])
+    rays = camera.unproject(np.concatenate([detections[i].corners_px for i in usable]))
+    solved: list[tuple[int, np.ndarray, np.ndarray]] = []
+    for k, i in enumerate(usable):
+        view_rays = rays[bounds[k] : bounds[k + 1]]
+        if np.any(view_rays[:, 2] <= 1e-3):
+            continue
+        normalised = (view_rays[:, :2] / view_rays[:, 2:3]).astype(np.float64).reshape(-1, 1, 2)
+        obj = detections[i].object_points_m.astype(np.float64).reshape(-1, 1, 3)
+        ok, rvec, tvec = cv2.solvePnP(obj, normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+        if ok and tvec[2, 0] > 0:
+            solved.append((i, rvec.reshape(3), tvec.reshape(3)))
+    if not solved:
+        return poses
+    rotations = [cv2.Rodrigues(rvec)[0] for _i, rvec, _t in solved]
+    # every solved view's corners in the camera frame, projected in one batch for the fit
+    in_camera = np.concatenate([detections[i].object_points_m.astype(np.float64) @ R.T + tvec
+                                for (i, _r, tvec), R in zip(solved, rotations, strict=True)])
+    misfit = np.sum((camera.project(in_camera) - np.concatenate([detections[i].corners_px for i, _r, _t in solved])) ** 2, axis=1)
+    fit_bounds = np.cumsum([0, *(detections[i].corner_count for i, _r, _t in solved)])
+    for k, ((i, rvec, tvec), R) in enumerate(zip(solved, rotations, strict=True)):
+        detection = detections[i]
+        fit_rms = float(np.sqrt(np.mean(misfit[fit_bounds[k] : fit_bounds[k + 1]])))
+        centre_board = detection.object_points_m.astype(np.float64).mean(axis=0) if board_centre_m is None else board_centre_m
+        centre_cam = R @ np.asarray(centre_board, np.float64).reshape(3) + tvec
+        tilt, tilt_x, tilt_y = tilt_against_sight_deg(R[:, 2], centre_cam)
+        poses[i] = BoardPose(
+            rvec=rvec,
+            tvec=tvec,
+            tilt_deg=tilt,
+            tilt_x_deg=tilt_x,
+            tilt_y_deg=tilt_y,
+            distance_m=float(np.linalg.norm(centre_cam)),
+            centre_px=detection.corners_px.astype(np.float64).mean(axis=0),
+            footprint=corner_footprint(detection.corners_px, camera.image_size),
+            fit_rms_px=fit_rms,
+        )
+    return poses

@@ -109,8 +109,15 @@ class CameraModel:
             xy = cv2.undistortPoints(px.reshape(-1, 1, 2), self.camera_matrix, self.opencv_dist(),
                                      criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
             rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
-            if np.all(np.isfinite(rays)) and np.max(np.abs(self.project(rays) - px)) < 1e-6:
-                return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+            with np.errstate(invalid="ignore", over="ignore"):
+                missed = ~(np.all(np.isfinite(rays), axis=1) & np.all(np.abs(self.project(rays) - px) < 1e-6, axis=1))
+            if missed.any():  # only the pixels OpenCV did not reach take the slow path
+                rays[missed] = self._unproject_by_bisection(px[missed])
+            return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        return self._unproject_by_bisection(px)
+
+    def _unproject_by_bisection(self, px: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 3) unit rays by inverting the radial profile (see `unproject`)."""
         K = self.camera_matrix
         yn = (px[:, 1] - K[1, 2]) / K[1, 1]
         xn = (px[:, 0] - K[0, 2] - K[0, 1] * yn) / K[0, 0]
