@@ -229,21 +229,19 @@ def look_alike_correlation(views: Sequence[View], residuals: Sequence[np.ndarray
     return float(np.clip(num / np.sqrt(den_a * den_b), 0.0, 1.0))
 
 
-# A hold counts as at most this many independent frames in the covariance, however many of its
-# frames the solve takes. Its frames share what their residuals cannot show: the pose's own
-# systematic corner error (lighting, foreshortening, what the extrinsics absorb). On the closed-loop
-# simulator the final solve's 400 frames (~10 repeats per pose) left the fisheye's true error where
-# 60 had put it (0.032 px) while the uncapped E fell 2.3x to a third of it; capped at 3 (the
-# repeats per pose the validated 60-frame solves held), true error / E stays in 0.2-2.5.
-MAX_FRAMES_PER_HOLD = 3.0
-
-
 def look_alike_weights(groups: Sequence[int], correlation: float) -> list[float]:
-    """Information weight per frame: a group of k look-alikes with residual correlation rho counts
-    as 1 + (k - 1)(1 - rho) independent frames (at most `MAX_FRAMES_PER_HOLD`), shared equally
-    (rho = 0 and k <= 3: every frame counts fully)."""
+    """Information weight per frame: a group of k look-alikes whose residuals correlate by rho counts
+    as k / (1 + (k - 1) rho) independent frames (the effective number of k equicorrelated
+    measurements), shared equally; rho = 0: every frame counts fully.
+
+    Frames of one hold share what their residuals cannot fully show (the pose's own systematic
+    corner error), and as k grows their worth tends to 1 / rho frames, not to k. The linear
+    1 + (k - 1)(1 - rho) used before counted a hold of 26 frames at rho 0.05 as 25 frames instead
+    of 12, so it needed a cap (3 frames a hold), which in turn put E at 3-5x the true error of
+    dim 720p renders (0.08-0.16 px true, E 0.34-0.44: refused) and 4x on careful ones.
+    """
     sizes = {g: list(groups).count(g) for g in set(groups)}
-    return [min(1.0 + (sizes[g] - 1) * (1.0 - correlation), MAX_FRAMES_PER_HOLD) / sizes[g] for g in groups]
+    return [1.0 / (1.0 + (sizes[g] - 1) * correlation) for g in groups]
 
 
 def with_look_alikes_weighted(calibration: Calibration, groups: Sequence[int]) -> tuple[Calibration, float]:
@@ -251,9 +249,7 @@ def with_look_alikes_weighted(calibration: Calibration, groups: Sequence[int]) -
 
     The solve uses every frame; its covariance would treat them all as independent. How much the
     frames of one group share is measured from their residuals (`look_alike_correlation`); each
-    then carries `look_alike_weights` as its View.information_weight. Measured on the closed-loop
-    simulator at 1x supersampling: counting look-alikes as independent put the true error at
-    1.5-2x E; weighted, 1.0-1.3x.
+    then carries `look_alike_weights` as its View.information_weight.
 
     Returns:
         (calibration, residual correlation rho); unchanged with rho 0 when no two frames look alike.

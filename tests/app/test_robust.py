@@ -361,9 +361,11 @@ def test_weighted_refinement_minimises_the_weighted_cost() -> None:
 def test_look_alike_weights_count_a_group_as_its_independent_share() -> None:
     assert look_alike_weights([0, 0, 1], 0.0) == [1.0, 1.0, 1.0]
     assert look_alike_weights([0, 0, 1], 1.0) == [0.5, 0.5, 1.0]
-    np.testing.assert_allclose(look_alike_weights([5, 5, 5, 5, 2], 0.5), [2.5 / 4] * 4 + [1.0])
-    # a long hold's repeats average sensor noise, not the pose's own error: it counts as 3 frames at most
-    np.testing.assert_allclose(look_alike_weights([7] * 10 + [1], 0.0), [0.3] * 10 + [1.0])
+    # k equicorrelated frames are worth k / (1 + (k - 1) rho): 4 at rho 0.5 count as 1.6
+    np.testing.assert_allclose(look_alike_weights([5, 5, 5, 5, 2], 0.5), [0.4] * 4 + [1.0])
+    # a long hold's repeats average their own noise, not what they share: worth at most 1 / rho frames
+    long_hold = look_alike_weights([7] * 200 + [1], 0.1)
+    assert 9.0 < sum(long_hold[:200]) < 10.0 and long_hold[-1] == 1.0
 
 
 def test_look_alike_correlation_measures_shared_residuals() -> None:
