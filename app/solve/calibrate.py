@@ -20,6 +20,11 @@ from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+# cv2.fisheye.calibrate stops once an iteration moves f and c by less than eps of their size. At
+# 1e-12 that never happens before the 100th iteration, and OpenCV 5.1 re-solves every view's pose
+# in each (~60 ms an iteration at 32 views): a 48-frame webcam video's final solve took 50 s. At
+# 1e-10 (1e-7 px at f = 900) it stops after ~25, with intrinsics equal to 1e-10 px.
+_FISHEYE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
 _GOOD_ENOUGH_RMS_PX = 1.0  # a start that fits this well is kept without trying the others
 _FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this order; the best RMS wins
 
@@ -134,7 +139,7 @@ def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: st
         img = [np.ascontiguousarray(v.image_points_px, np.float64).reshape(1, -1, 2) for v in views]
         try:
             rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(obj, img, tuple(image_size), seed.camera_matrix.copy(),
-                                                            np.zeros((4, 1)), flags=flags, criteria=_CRITERIA)
+                                                            np.zeros((4, 1)), flags=flags, criteria=_FISHEYE_CRITERIA)
         except cv2.error as exc:
             raise CalibrationError(f"the bootstrap fisheye solve failed ({_short(exc)})") from None
         camera = CameraModel("fisheye", K, np.asarray(D).reshape(-1), image_size)
@@ -173,7 +178,7 @@ def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: 
         try:
             rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
                 obj, img, tuple(image_size), seed.camera_matrix.copy(), seed.dist_coeffs.reshape(4, 1).copy(),
-                flags=flags, criteria=_CRITERIA,
+                flags=flags, criteria=_FISHEYE_CRITERIA,
             )
         except cv2.error as exc:
             failures.append(_short(exc))
