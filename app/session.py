@@ -25,7 +25,7 @@ from calibcoach.app.session_finish import (
 )
 from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings
 from calibcoach.app.session_types import SessionResult as SessionResult  # re-exported: what finish() returns
-from calibcoach.app.solve.calibrate import pose_for_view, solve
+from calibcoach.app.solve.calibrate import poses_for_views, solve
 from calibcoach.app.solve.next_view import RankedPose, error_cut, rank_poses
 from calibcoach.app.solve.result import UncertaintyMap, View
 from calibcoach.app.solve.robust import noise_sigma_px
@@ -256,7 +256,7 @@ class CalibrationSession(SessionFinish):
         """Solve, re-read the coverage with the new intrinsics, re-rank the next poses, check the stop rule."""
         rvecs_tvecs = self._incremental_solve()
         if rvecs_tvecs is None:  # no solve yet: the poses the bootstrap intrinsics give
-            poses = [pose_for_view(self.camera, v) for v in self.views]
+            poses = poses_for_views(self.camera, self.views)
             if any(p is None for p in poses):
                 return
             rvecs = np.array([p[0] for p in poses])  # type: ignore[index]

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from calibcoach.app.solve.result import View
+from calibcoach.app.solve.weighted import weighted_refine
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
@@ -25,6 +26,8 @@ _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 # in each (~60 ms an iteration at 32 views): a 48-frame webcam video's final solve took 50 s. At
 # 1e-10 (1e-7 px at f = 900) it stops after ~25, with intrinsics equal to 1e-10 px.
 _FISHEYE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+_FISHEYE_BASIN_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 8, 1e-8)  # OpenCV's part of `_solve_fisheye`
+_FISHEYE_OPENCV_VIEWS = 60  # at most this many views go to cv2.fisheye.calibrate in `_solve_fisheye`
 _GOOD_ENOUGH_RMS_PX = 1.0  # a start that fits this well is kept without trying the others
 _FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this order; the best RMS wins
 
@@ -159,6 +162,35 @@ def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: st
 
 
 def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: CameraModel | None) -> RawSolution:
+    """Kannala-Brandt: OpenCV finds the basin, the Schur-reduced refinement of weighted.py converges.
+
+    cv2.fisheye.calibrate re-solves every view's pose in each of its iterations (OpenCV 5.1: ~2 ms
+    a view, so ~1.5 s for 32 views to converge and ~20 s for a final solve of 400). So OpenCV runs
+    a few iterations from each start (`_FISHEYE_BASIN_CRITERIA`) on at most `_FISHEYE_OPENCV_VIEWS`
+    views spread over the capture, every view is posed under the best start's lens, and intrinsics
+    and all poses are refined together by `weighted_refine` with unit weights -- the same least-
+    squares problem OpenCV solves, ~1 ms a view an iteration. Where that refinement cannot start
+    (a view the start cannot pose) OpenCV solves all views to convergence as before.
+    """
+    step = max(len(views) / _FISHEYE_OPENCV_VIEWS, 1.0)
+    spread = [views[int(i * step)] for i in range(min(len(views), _FISHEYE_OPENCV_VIEWS))]
+    start = _solve_fisheye_opencv(spread, image_size, initial, criteria=_FISHEYE_BASIN_CRITERIA)
+    if len(spread) == len(views):
+        rvecs, tvecs = start.rvecs, start.tvecs
+    else:
+        poses = poses_for_views(start.camera, views)
+        if any(pose is None for pose in poses):
+            return _solve_fisheye_opencv(views, image_size, initial, criteria=_FISHEYE_CRITERIA)
+        rvecs = np.array([pose[0] for pose in poses])  # type: ignore[index]
+        tvecs = np.array([pose[1] for pose in poses])  # type: ignore[index]
+    camera, rvecs, tvecs = weighted_refine(start.camera, views, rvecs, tvecs, np.ones(len(views)), iterations=50)
+    residuals = np.concatenate(reprojection_residuals(camera, views, rvecs, tvecs))
+    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+    return _checked(RawSolution(camera, rms, rvecs, tvecs), len(views))
+
+
+def _solve_fisheye_opencv(views: Sequence[View], image_size: tuple[int, int], initial: CameraModel | None, *,
+                          criteria: tuple[int, int, float]) -> RawSolution:
     obj = [np.ascontiguousarray(v.object_points_m, np.float64).reshape(1, -1, 3) for v in views]
     img = [np.ascontiguousarray(v.image_points_px, np.float64).reshape(1, -1, 2) for v in views]
     flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
@@ -178,7 +210,7 @@ def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: 
         try:
             rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
                 obj, img, tuple(image_size), seed.camera_matrix.copy(), seed.dist_coeffs.reshape(4, 1).copy(),
-                flags=flags, criteria=_FISHEYE_CRITERIA,
+                flags=flags, criteria=criteria,
             )
         except cv2.error as exc:
             failures.append(_short(exc))
@@ -215,18 +247,32 @@ def pose_for_view(camera: CameraModel, view: View) -> tuple[np.ndarray, np.ndarr
     Works for every model by unprojecting the corners to normalised coordinates first, so the
     fisheye needs no special PnP.
     """
-    rays = camera.unproject(view.image_points_px)
-    if np.any(rays[:, 2] <= 1e-6):
-        return None
-    normalised = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
-    ok, rvec, tvec = cv2.solvePnP(view.object_points_m.reshape(-1, 1, 3), normalised, np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        return None
-    rvec, tvec = cv2.solvePnPRefineLM(
-        view.object_points_m.reshape(-1, 1, 3), view.image_points_px.reshape(-1, 1, 2).astype(np.float64),
-        camera.camera_matrix, camera.opencv_dist(), rvec, tvec,
-    ) if camera.model != "fisheye" else (rvec, tvec)
-    return rvec.reshape(3), tvec.reshape(3)
+    return poses_for_views(camera, [view])[0]
+
+
+def poses_for_views(camera: CameraModel, views: Sequence[View]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """`pose_for_view` of each view, the corners of all of them unprojected in one batch."""
+    if not views:
+        return []
+    bounds = np.cumsum([0, *(v.image_points_px.shape[0] for v in views)])
+    rays_all = camera.unproject(np.concatenate([v.image_points_px for v in views]))
+    poses: list[tuple[np.ndarray, np.ndarray] | None] = []
+    for view, a, b in zip(views, bounds[:-1], bounds[1:], strict=True):
+        rays = rays_all[a:b]
+        if np.any(rays[:, 2] <= 1e-6):
+            poses.append(None)
+            continue
+        normalised = (rays[:, :2] / rays[:, 2:3]).reshape(-1, 1, 2)
+        ok, rvec, tvec = cv2.solvePnP(view.object_points_m.reshape(-1, 1, 3), normalised, np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            poses.append(None)
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(
+            view.object_points_m.reshape(-1, 1, 3), view.image_points_px.reshape(-1, 1, 2).astype(np.float64),
+            camera.camera_matrix, camera.opencv_dist(), rvec, tvec,
+        ) if camera.model != "fisheye" else (rvec, tvec)
+        poses.append((rvec.reshape(3), tvec.reshape(3)))
+    return poses
 
 
 def _stack(vectors: Sequence[np.ndarray]) -> np.ndarray:

@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import cv2
 import numpy as np
 
-from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.calibrate import poses_for_views, reprojection_residuals, solve
 from calibcoach.app.solve.result import ModelChoice, View
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
@@ -35,8 +35,7 @@ def held_out_rms(camera: CameraModel, views: Sequence[View]) -> float:
     motion-blurred frame or two (which the final robust solve drops anyway) do not decide the model.
     """
     per_view = []
-    for view in views:
-        pose = pose_for_view(camera, view)
+    for view, pose in zip(views, poses_for_views(camera, views), strict=True):
         if pose is None:
             per_view.append(float("inf"))
             continue
