@@ -131,12 +131,24 @@ def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.n
         (P, P) float64 information for unit pixel noise (per coordinate).
     """
     rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
-    S = np.zeros((len(intrinsic_names(camera.model)),) * 2)
-    for v, r, t in zip(views, rv, tv, strict=True):  # one pose per view, or ValueError
-        J_intr, J_pose = view_jacobian(camera, v.object_points_m, r, t)
+    P = len(intrinsic_names(camera.model))
+    if len(views) != rv.shape[0] or len(views) != tv.shape[0]:
+        raise ValueError(f"expected one pose per view; got {len(views)} views, {rv.shape[0]} rvecs, {tv.shape[0]} tvecs")
+    if not views:
+        return np.zeros((P, P))
+    # every view's rows in one padded stack (zero rows add nothing), its pose marginalised in a batch
+    rows = 2 * max(v.object_points_m.shape[0] for v in views)
+    J_intr, J_pose = np.zeros((len(views), rows, P)), np.zeros((len(views), rows, 6))
+    for k, (v, r, t) in enumerate(zip(views, rv, tv, strict=True)):
+        Ji, Jp = view_jacobian(camera, v.object_points_m, r, t)
         scale = np.sqrt(v.information_weight)  # a view counting for w of an independent one: rows x sqrt(w)
-        S = schur_update(S, scale * J_intr, scale * J_pose)
-    return S
+        J_intr[k, : Ji.shape[0]], J_pose[k, : Jp.shape[0]] = scale * Ji, scale * Jp
+    A = J_intr.reshape(-1, P).T @ J_intr.reshape(-1, P)
+    B = np.swapaxes(J_intr, 1, 2) @ J_pose  # (V, P, 6)
+    C = np.swapaxes(J_pose, 1, 2) @ J_pose  # (V, 6, 6)
+    # pinv: a view with < 3 corners has a singular pose block; its rows then add only what they fix.
+    S = A - np.einsum("vpa,vqa->pq", B @ np.linalg.pinv(C, rcond=1e-12, hermitian=True), B)
+    return 0.5 * (S + S.T)
 
 
 def covariance_from_information(information: np.ndarray) -> np.ndarray:
