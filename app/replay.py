@@ -1,8 +1,9 @@
 """Replay: run a recorded source through the session as fast as the machine allows.
 
-Detection dominates the per-frame cost and OpenCV's `detectBoard` releases the GIL, so frames are
-detected ahead on worker threads (one detector per thread) while the session consumes outcomes
-strictly in frame order; the decisions are therefore identical to a single-threaded run.
+Frames are decoded and detected (or tracked: app/scan.py) ahead on worker threads, one detector
+per thread, while the session consumes them strictly in frame order, so the decisions are those
+of a single-threaded run. Footage (videos, image folders) is scanned in a child process of its
+own (app/scan_process.py), so the scan's Python and the session's never wait for one GIL.
 Replay stops reading as soon as the session's stop rule is met.
 """
 
