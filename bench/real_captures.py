@@ -4,7 +4,8 @@
   intrinsics (fx, fy; k2/k3 are loose at this ~25 deg field of view). The board never leaves the
   middle of the image, so a trusted verdict would be wrong whatever the focal length says.
 - caliscope_webcam_charuco_4x5/video/cam_0.mp4: a webcam video of an inverted 4x5 board; no
-  published intrinsics, so plain calibrateCamera on every frame with >= 6 corners is shown beside.
+  published intrinsics, so plain OpenCV on every frame with >= 6 corners, in the model calibcoach
+  chose (a ~90 deg lens: its fisheye f and a pinhole f are different numbers), is shown beside.
 - wpical_phone_video_charuco_12x8: a fronto-parallel phone video whose focal length is not
   observable: the right answer is a refusal.
 - boofcv_sony_hx5v_chess: a plain chessboard, which calibcoach does not read (ChArUco only): the
@@ -48,8 +49,10 @@ def calibrate(source: Path, board: list[str]) -> tuple[int, dict | None, str, fl
     return done.returncode, data, last, seconds
 
 
-def plain_video_fx(video: Path) -> float:
-    """fx from plain calibrateCamera on every frame with >= 6 corners (inverted markers on)."""
+def plain_video_fx(video: Path, model: str) -> float:
+    """fx from plain OpenCV on every frame with >= 6 corners (inverted markers on), in `model`: a
+    fisheye's f and a pinhole's are different quantities, so the comparison uses the model
+    calibcoach chose (cv2.fisheye.calibrate for "fisheye", calibrateCamera otherwise)."""
     board = cv2.aruco.CharucoBoard((4, 5), 0.054, 0.0405, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_1000))
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -68,7 +71,15 @@ def plain_video_fx(video: Path) -> float:
             o, i = board.matchImagePoints(corners, ids)
             obj.append(o.reshape(-1, 1, 3))
             img.append(i.reshape(-1, 1, 2))
-    _rms, K, _D, _r, _t = cv2.calibrateCamera(obj, img, size, None, None)
+    if model == "fisheye":
+        K0 = np.array([[size[0] / 2.0, 0, (size[0] - 1) / 2.0], [0, size[0] / 2.0, (size[1] - 1) / 2.0], [0, 0, 1]])
+        _rms, K, _D, _r, _t = cv2.fisheye.calibrate(
+            [o.reshape(1, -1, 3).astype(np.float64) for o in obj], [i.reshape(1, -1, 2).astype(np.float64) for i in img],
+            size, K0, np.zeros((4, 1)), flags=cv2.fisheye.CALIB_RECOMPUTE_EXTRINSIC | cv2.fisheye.CALIB_FIX_SKEW
+            | cv2.fisheye.CALIB_USE_INTRINSIC_GUESS, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10))
+    else:
+        flags = cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0
+        _rms, K, _D, _r, _t = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
     return float(K[0, 0])
 
 
@@ -94,11 +105,12 @@ def main() -> int:
                     f"{(K[0, 0] / rfx - 1) * 100:+.2f}% | {data['frames_used']} | {verdict_of(code, data, last)} | {secs:.1f} |")
     video = args.data / "caliscope_webcam_charuco_4x5" / "video" / "cam_0.mp4"
     code, data, last, secs = calibrate(video, CALISCOPE_BOARD)
-    plain = plain_video_fx(video)
-    fx = f"{np.array(data['camera_matrix'])[0, 0]:.1f}" if data else "-"
-    off = f"{(float(fx) / plain - 1) * 100:+.2f}% (vs plain)" if data else "-"
-    rows.append(f"| caliscope webcam cam_0 (48 frames, inverted print) | {fx} | {plain:.1f} (plain calibrateCamera, no published "
-                f"reference) | {off} | {data['frames_used'] if data else '-'} | {verdict_of(code, data, last)} | {secs:.1f} |")
+    model = data["model"] if data else "pinhole"
+    plain = plain_video_fx(video, model)
+    fx = f"{np.array(data['camera_matrix'])[0, 0]:.1f} ({model})" if data else "-"
+    off = f"{(np.array(data['camera_matrix'])[0, 0] / plain - 1) * 100:+.2f}% (vs plain)" if data else "-"
+    rows.append(f"| caliscope webcam cam_0 (48 frames, inverted print) | {fx} | {plain:.1f} (plain OpenCV, same model; no "
+                f"published reference) | {off} | {data['frames_used'] if data else '-'} | {verdict_of(code, data, last)} | {secs:.1f} |")
     code, data, last, secs = calibrate(args.data / "wpical_phone_video_charuco_12x8" / "testcalibration.mp4", WPICAL_BOARD)
     fx = f"{np.array(data['camera_matrix'])[0, 0]:.0f}" if data else "-"
     rows.append(f"| wpical phone video (fronto-parallel) | {fx} | not observable (1707-2198 by method) | - | "
