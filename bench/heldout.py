@@ -46,7 +46,7 @@ from calibcoach.coverage.detector import CharucoBoardDetector, Detection  # noqa
 from calibcoach.drivers.lens import CameraModel  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
-from calibcoach.drivers.sim import LOW_LIGHT_EXPOSURE_FACTOR  # noqa: E402
+from calibcoach.drivers.sim import effective_exposure_s  # noqa: E402
 
 PLAIN_EVERY = 30  # frames: the recipe's "one frame a second" at 30 fps
 STILL_SMEAR_PX = 1.5  # a frame whose corners moved less than this during the exposure is still (mrcal's input): the selector's own smear limit
@@ -156,8 +156,8 @@ def evaluate(cell_name: str, seed: int, *, use_mrcal: bool) -> list[Run]:
                             camera, model, yardstick),
             solve_and_score("ROS-style", select_ros([d for _i, d in sorted(dets.items())], camera.image_size),
                             camera, model, yardstick)]
-    # exposure_s.txt holds the exposure drawn for the render; the simulator doubles it in low light
-    exposure_s = float((folder / "exposure_s.txt").read_text()) * (LOW_LIGHT_EXPOSURE_FACTOR if cell.low_light else 1.0)
+    # exposure_s.txt holds the exposure drawn for the render; the simulator doubles it in low light, up to 1 / fps
+    exposure_s = effective_exposure_s(float((folder / "exposure_s.txt").read_text()), low_light=cell.low_light, fps=cell.fps)
     smear = exposure_smear_px(truth, exposure_s, cell.fps, spec)
     still = [(f"{i:06d}", d) for i, d in sorted(dets.items()) if d.corner_count >= 6 and smear.get(i, 9.0) < STILL_SMEAR_PX]
     if use_mrcal:  # at most MRCAL_FRAMES of them, evenly spread (mrcal's solve grows with the views)

@@ -90,9 +90,17 @@ LENSES: dict[str, CameraModel] = {
     "webcam1080": _lens("pinhole", (1920, 1080), 1292.2, 1291.0, 954.3, 543.4, [-0.08, 0.05, 0.0005, 0.0004, -0.01]),
 }
 
-# Exposure: 20 ms under office light; low light doubles it (auto-exposure), so motion smears more.
+# Exposure: 20 ms under office light; low light doubles it (auto-exposure), so motion smears more,
+# up to the frame interval: a camera cannot expose one frame for longer than it takes to deliver it
+# (in less light a webcam lowers its frame rate instead, or raises its gain).
 EXPOSURE_S = 0.02
 LOW_LIGHT_EXPOSURE_FACTOR = 2.0
+
+
+def effective_exposure_s(exposure_s: float, *, low_light: bool, fps: float | None) -> float:
+    """The exposure a frame gets: `exposure_s`, doubled in low light, at most 1 / fps."""
+    exposure = float(exposure_s) * (LOW_LIGHT_EXPOSURE_FACTOR if low_light else 1.0)
+    return exposure if fps is None else min(exposure, 1.0 / float(fps))
 
 
 def lens_name_of(camera: CameraModel) -> str:
@@ -126,7 +134,8 @@ class SimulatedCamera(FrameSource):
         poses: one Pose per frame (from `handheld_path`); the frame rate comes from their timestamps.
         noise_sigma: sensor noise, 8-bit DN at normal light (x2.5 in low light).
         blur_sigma: Gaussian lens blur in pixels (0.6 ~ a focused webcam; 2+ is visibly out of focus).
-        low_light: a dim room: ~1/3 of the brightness after gamma, more noise, twice the exposure time.
+        low_light: a dim room: ~1/3 of the brightness after gamma, more noise, twice the exposure time
+                (at most the frame interval).
         inverted: white-on-black print.
         legacy: OpenCV's pre-4.6 ChArUco pattern.
         seed: noise seed; frame i draws from `default_rng([seed, i])`, so any frame renders the same
@@ -174,7 +183,7 @@ class SimulatedCamera(FrameSource):
         self.seed = int(seed)
         self.lens_name = lens_name or lens_name_of(camera)
         self.vignetting = float(vignetting)
-        self.exposure_s = float(exposure_s) * (LOW_LIGHT_EXPOSURE_FACTOR if low_light else 1.0)
+        self.exposure_s = effective_exposure_s(exposure_s, low_light=low_light, fps=self.fps if len(self.poses) >= 2 else None)
         self.supersample = int(supersample)
         self.trajectory = trajectory
         self._renderer: BoardRenderer | None = None  # built on first use: ~0.5-2 s and ~60 MB at 720p

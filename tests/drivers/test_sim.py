@@ -338,3 +338,12 @@ def test_simulated_camera_info_and_truth() -> None:
     assert SimulatedCamera(camera.resized(SMALL), SPEC, poses).info.camera_id == "sim:custom"
     with pytest.raises(ValueError, match="at least one pose"):
         SimulatedCamera(camera, SPEC, [])
+
+
+def test_low_light_doubles_the_exposure_up_to_the_frame_interval() -> None:
+    camera = LENSES["webcam720"]
+    poses = handheld_path(camera, SPEC, "frontal", seconds=1, fps=30, seed=0)
+    assert SimulatedCamera(camera, SPEC, poses, exposure_s=0.01, low_light=True).exposure_s == pytest.approx(0.02)
+    # 2 x 30 ms would outlast a 30 fps frame: a camera cannot expose longer than it takes to deliver a frame
+    assert SimulatedCamera(camera, SPEC, poses, exposure_s=0.03, low_light=True).exposure_s == pytest.approx(1 / 30, rel=1e-6)
+    assert SimulatedCamera(camera, SPEC, poses, exposure_s=0.03).exposure_s == pytest.approx(0.03)
