@@ -77,8 +77,8 @@ def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, 
                 message = receiving.recv()
             except EOFError:
                 child.join(timeout=5.0)
-                raise RuntimeError(f"the scan process ended without finishing (exit code {child.exitcode}); "
-                                   "run again, or pass --every-frame to scan in one process") from None
+                raise RuntimeError(f"the process scanning the frames ended without finishing (exit code {child.exitcode}: "
+                                   "killed, out of memory or crashed in OpenCV); run the command again") from None
             kind = message[0]
             if kind == "frame":
                 _kind, slot, shape, (index, timestamp_ns, name, controls), seen, child_state = message
