@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
-from calibcoach.app.scan_process import fork_available, scanned_in_child
+from calibcoach.app.scan_process import fork_available, ring_fits, scanned_in_child
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -77,7 +77,7 @@ def _scanned_in_child(source: FrameSource, board: BoardSpec, counts: _ChildCount
     """`detected_frames` run in a child process; the print's variant, the scan's counts and the
     source's unreadable frames are mirrored into `settle`, `counts` and `source.skipped` as they come."""
     width, height = source.info.image_size or (0, 0)
-    scans: list[HeldFrameScan] = []
+    scans: list[HeldFrameScan] = []  # the child's scan, in the child
 
     def make_seen() -> Iterator[Seen]:  # runs in the child, on its copies of source and settle
         return detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
@@ -133,7 +133,8 @@ def run_replay(
                    focus_events=focus_events(info.events))
     start = time.perf_counter()
     scans: list[HeldFrameScan] = []
-    if info.kind in TRACKED_KINDS and info.image_size is not None and in_child and fork_available():
+    frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
+    if info.kind in TRACKED_KINDS and frame_bytes and in_child and fork_available() and ring_fits(frame_bytes):
         counts = _ChildCounts()
         feed.run(_scanned_in_child(source, board, counts, settle=settle, workers=workers, every_frame=every_frame))
         tracked = counts.tracked

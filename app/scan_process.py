@@ -20,7 +20,8 @@ the frame is yielded, so the parent sees it exactly when an in-process scan woul
 
 Closing the iterator (the stop rule, Ctrl-C, an error in the session) ends the child. The child
 ignores SIGINT, so Ctrl-C reaches only the parent, which stops reading and keeps what it accepted.
-Where `fork` is not available, `fork_available()` says so and the caller scans in process.
+Where `fork` is not available or the ring would not fit in /dev/shm (`fork_available`,
+`ring_fits`), the caller scans in process, with the same decisions.
 """
 
 from __future__ import annotations
@@ -45,6 +46,17 @@ _POLL_S = 0.5  # how often a waiting side checks that the other is still there
 
 def fork_available() -> bool:
     return "fork" in multiprocessing.get_all_start_methods()
+
+
+def ring_fits(frame_bytes: int) -> bool:
+    """Whether the shared-memory ring for frames of `frame_bytes` fits where POSIX shared memory lives
+    with room to spare. A container's /dev/shm is often 64 MB, and a write beyond a full tmpfs kills
+    the process (SIGBUS) instead of raising, so the caller scans in process when it would not fit."""
+    try:
+        stats = os.statvfs("/dev/shm")
+    except OSError:
+        return False
+    return stats.f_bavail * stats.f_frsize >= 2 * frames_ahead(frame_bytes) * frame_bytes
 
 
 def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,

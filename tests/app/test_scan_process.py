@@ -86,3 +86,16 @@ def test_stopping_early_ends_the_child_and_frees_the_ring(recordings_dir: Path, 
     assert multiprocessing.active_children() == []
     leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("psm_")] if os.path.isdir("/dev/shm") else []
     assert leftovers == []
+
+
+def test_a_ring_that_would_not_fit_in_shared_memory_is_not_asked_for(monkeypatch: pytest.MonkeyPatch) -> None:
+    from calibcoach.app import scan_process
+
+    class Free:
+        def __init__(self, megabytes: int) -> None:
+            self.f_bavail, self.f_frsize = megabytes * 2**20 // 4096, 4096
+
+    monkeypatch.setattr(scan_process.os, "statvfs", lambda _path: Free(1024))
+    assert scan_process.ring_fits(1280 * 720 * 3)  # 23 slots of 2.8 MB, twice over, fit in 1 GB
+    monkeypatch.setattr(scan_process.os, "statvfs", lambda _path: Free(64))  # a container's usual /dev/shm
+    assert not scan_process.ring_fits(1280 * 720 * 3)  # scanned in process instead
