@@ -75,6 +75,13 @@ def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, 
     """
     slots = frames_ahead(frame_bytes)
     context = multiprocessing.get_context("fork")
+    # OpenCV's own thread pool goes down to one thread here, before the fork: the scan detects on
+    # threads of its own beside its decoders, so OpenCV's threads inside each call would only
+    # oversubscribe the cores (corners are the same either way), and a forked child must never
+    # reconfigure a pool whose threads stayed in the parent (it hangs in pthread_cond_destroy; seen
+    # when the bench's process had detected with two threads before). The session asks for one
+    # thread anyway (app/session.py).
+    cv2.setNumThreads(1)
     memory = shared_memory.SharedMemory(create=True, size=slots * frame_bytes)
     ring = np.ndarray((slots, frame_bytes), np.uint8, memory.buf)
     free = context.Semaphore(slots)
@@ -119,9 +126,6 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
              free: Any, ring: np.ndarray, parent_pid: int) -> None:
     """The child: scan, and hand every frame over in order (runs after fork; exits with the parent's pipe)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle: it ends this process
-    # The scan runs its own detection threads beside its decoders: OpenCV's threads inside each call
-    # would only oversubscribe the cores (~10% more CPU a detection); the corners are the same.
-    cv2.setNumThreads(1)
     slots, frame_bytes = ring.shape
     try:
         for count, seen in enumerate(make_seen()):

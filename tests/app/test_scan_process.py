@@ -99,3 +99,27 @@ def test_a_ring_that_would_not_fit_in_shared_memory_is_not_asked_for(monkeypatch
     assert scan_process.ring_fits(1280 * 720 * 3)  # 23 slots of 2.8 MB, twice over, fit in 1 GB
     monkeypatch.setattr(scan_process.os, "statvfs", lambda _path: Free(64))  # a container's usual /dev/shm
     assert not scan_process.ring_fits(1280 * 720 * 3)  # scanned in process instead
+
+
+def test_a_child_scan_starts_after_opencv_ran_its_own_threads(recordings_dir: Path, tmp_path: Path) -> None:
+    # A process that used OpenCV's thread pool (a bench detecting with two threads first) forks the
+    # scan: the child must not touch the pool whose threads stayed behind (it hung once). Run in a
+    # fresh interpreter, so this test's own process state does not decide it, with a deadline.
+    import subprocess
+    import sys
+    import textwrap
+
+    folder = _folder(recordings_dir, tmp_path / "frames", frames=20)
+    script = textwrap.dedent(f"""
+        import cv2, numpy as np
+        cv2.setNumThreads(2)
+        cv2.GaussianBlur(np.zeros((2000, 2000), np.float32), (31, 31), 5)  # the pool's threads start
+        from calibcoach.app.replay import run_replay
+        from calibcoach.coverage.board import BoardSpec
+        from calibcoach.drivers.replay import ImageFolderSource
+        session, stats = run_replay(ImageFolderSource({str(folder)!r}), BoardSpec())
+        print("read", stats.frames_read)
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "read 20" in done.stdout
