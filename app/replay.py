@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
-from calibcoach.app.scan_process import fork_available, ring_fits, scanned_in_child
+from calibcoach.app.scan_process import fork_available, scanned_in_child
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -134,7 +134,7 @@ def run_replay(
     start = time.perf_counter()
     scans: list[HeldFrameScan] = []
     frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
-    if info.kind in TRACKED_KINDS and frame_bytes and in_child and fork_available() and ring_fits(frame_bytes):
+    if info.kind in TRACKED_KINDS and frame_bytes and in_child and fork_available():
         counts = _ChildCounts()
         feed.run(_scanned_in_child(source, board, counts, settle=settle, workers=workers, every_frame=every_frame))
         tracked = counts.tracked

@@ -20,18 +20,21 @@ the frame is yielded, so the parent sees it exactly when an in-process scan woul
 
 Closing the iterator (the stop rule, Ctrl-C, an error in the session) ends the child. The child
 ignores SIGINT, so Ctrl-C reaches only the parent, which stops reading and keeps what it accepted.
-Where `fork` is not available or the ring would not fit in /dev/shm (`fork_available`,
-`ring_fits`), the caller scans in process, with the same decisions.
+The ring is an anonymous shared mapping, not a named POSIX segment: the forked child inherits it,
+nothing is left in /dev/shm when either process is killed outright (a named segment outlived a
+SIGKILLed bench run), and a container's small /dev/shm (often 64 MB, where a write beyond a full
+tmpfs kills with SIGBUS) does not limit it. Where `fork` is not available (`fork_available`), the
+caller scans in process, with the same decisions.
 """
 
 from __future__ import annotations
 
+import mmap
 import multiprocessing
 import os
 import signal
 from collections.abc import Callable, Iterator
 from dataclasses import replace
-from multiprocessing import shared_memory
 from types import MappingProxyType
 from typing import Any
 
@@ -46,17 +49,6 @@ _POLL_S = 0.5  # how often a waiting side checks that the other is still there
 
 def fork_available() -> bool:
     return "fork" in multiprocessing.get_all_start_methods()
-
-
-def ring_fits(frame_bytes: int) -> bool:
-    """Whether the shared-memory ring for frames of `frame_bytes` fits where POSIX shared memory lives
-    with room to spare. A container's /dev/shm is often 64 MB, and a write beyond a full tmpfs kills
-    the process (SIGBUS) instead of raising, so the caller scans in process when it would not fit."""
-    try:
-        stats = os.statvfs("/dev/shm")
-    except OSError:
-        return False
-    return stats.f_bavail * stats.f_frsize >= 2 * frames_ahead(frame_bytes) * frame_bytes
 
 
 def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
@@ -82,8 +74,8 @@ def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, 
     # when the bench's process had detected with two threads before). The session asks for one
     # thread anyway (app/session.py).
     cv2.setNumThreads(1)
-    memory = shared_memory.SharedMemory(create=True, size=slots * frame_bytes)
-    ring = np.ndarray((slots, frame_bytes), np.uint8, memory.buf)
+    memory = mmap.mmap(-1, slots * frame_bytes)  # anonymous and MAP_SHARED: the child's writes are seen here
+    ring = np.frombuffer(memory, np.uint8).reshape(slots, frame_bytes)
     free = context.Semaphore(slots)
     receiving, sending = context.Pipe(duplex=False)
     child = context.Process(target=_produce, args=(make_seen, state, sending, free, ring, os.getpid()),
@@ -117,9 +109,8 @@ def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, 
             child.terminate()
         child.join()
         receiving.close()
-        del ring
+        del ring  # the array's hold on the mapping goes first, or close() refuses
         memory.close()
-        memory.unlink()
 
 
 def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,

@@ -66,6 +66,12 @@ def test_a_child_that_dies_is_reported_not_waited_for() -> None:
         list(scanned_in_child(dying, 64, state=lambda: None, apply_state=lambda _s: None))
 
 
+def _shared_mappings() -> list[str]:
+    """This process's shared anonymous mappings (how Linux lists them), empty where /proc is missing."""
+    maps = Path("/proc/self/maps")
+    return [line for line in maps.read_text().splitlines() if "/dev/zero" in line] if maps.exists() else []
+
+
 def test_stopping_early_ends_the_child_and_frees_the_ring(recordings_dir: Path, tmp_path: Path) -> None:
     from calibcoach.app.scan import Seen
     from calibcoach.coverage.detector import Detection
@@ -77,28 +83,20 @@ def test_stopping_early_ends_the_child_and_frees_the_ring(recordings_dir: Path, 
             yield Seen(Frame(index, index, np.full((4, 4), index % 256, np.uint8)), Detection.empty(), None, None)
             index += 1
 
+    mappings_before = _shared_mappings()
+    named_before = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
     states = []
     stream = scanned_in_child(endless, 16, state=lambda: "running", apply_state=states.append)
     first = [next(stream) for _ in range(100)]
     assert [int(s.frame.image[0, 0]) for s in first] == [i % 256 for i in range(100)]  # in order, pixels intact
     assert states == ["running"] * 100
+    if Path("/proc/self/maps").exists():
+        assert len(_shared_mappings()) == len(mappings_before) + 1  # the ring, while the scan runs
     stream.close()
     assert multiprocessing.active_children() == []
-    leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("psm_")] if os.path.isdir("/dev/shm") else []
-    assert leftovers == []
-
-
-def test_a_ring_that_would_not_fit_in_shared_memory_is_not_asked_for(monkeypatch: pytest.MonkeyPatch) -> None:
-    from calibcoach.app import scan_process
-
-    class Free:
-        def __init__(self, megabytes: int) -> None:
-            self.f_bavail, self.f_frsize = megabytes * 2**20 // 4096, 4096
-
-    monkeypatch.setattr(scan_process.os, "statvfs", lambda _path: Free(1024))
-    assert scan_process.ring_fits(1280 * 720 * 3)  # 23 slots of 2.8 MB, twice over, fit in 1 GB
-    monkeypatch.setattr(scan_process.os, "statvfs", lambda _path: Free(64))  # a container's usual /dev/shm
-    assert not scan_process.ring_fits(1280 * 720 * 3)  # scanned in process instead
+    assert _shared_mappings() == mappings_before  # the ring is unmapped
+    named_after = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+    assert named_after <= named_before  # nothing named was ever left behind
 
 
 def test_a_child_scan_starts_after_opencv_ran_its_own_threads(recordings_dir: Path, tmp_path: Path) -> None:
