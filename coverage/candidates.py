@@ -106,6 +106,22 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
             if view.corner_count >= MIN_TARGET_CORNERS]
 
 
+def region_cell_counts(point_sets: Sequence[np.ndarray], image_size: tuple[int, int],
+                       grid_shape: tuple[int, int]) -> np.ndarray:
+    """(K, rows, cols) int: how many of each of K sets of (N, 2) pixels fall in each region cell,
+    counted for all sets in one bincount (candidates and kept frames are counted by hundreds)."""
+    rows, cols = grid_shape
+    w, h = image_size
+    if not point_sets:
+        return np.zeros((0, rows, cols), np.intp)
+    px = np.concatenate([np.asarray(p, np.float64).reshape(-1, 2) for p in point_sets])
+    owner = np.repeat(np.arange(len(point_sets)), [np.asarray(p).reshape(-1, 2).shape[0] for p in point_sets])
+    r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
+    c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
+    counts = np.bincount(owner * rows * cols + r * cols + c, minlength=len(point_sets) * rows * cols)
+    return counts.reshape(len(point_sets), rows, cols)
+
+
 def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, int], grid_shape: tuple[int, int],
                     need: int) -> np.ndarray:
     """(rows, cols) bool: region cells into which some candidate puts at least `need` detectable corners.
@@ -113,16 +129,10 @@ def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, 
     These are the cells a board can be seen in on this lens: a fisheye's black corners, or image
     corners beyond ~85 deg where no board can be read, are not among them.
     """
-    rows, cols = grid_shape
-    w, h = image_size
     if not candidates:
-        return np.zeros((rows, cols), bool)
-    px = np.concatenate([cand.view.image_points_px.reshape(-1, 2) for cand in candidates])
-    owner = np.repeat(np.arange(len(candidates)), [cand.view.image_points_px.shape[0] for cand in candidates])
-    r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
-    c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
-    counts = np.bincount(owner * rows * cols + r * cols + c, minlength=len(candidates) * rows * cols)
-    return counts.reshape(len(candidates), rows, cols).max(axis=0) >= need  # most corners one candidate puts in a cell
+        return np.zeros(grid_shape, bool)
+    counts = region_cell_counts([cand.view.image_points_px for cand in candidates], image_size, grid_shape)
+    return counts.max(axis=0) >= need  # most corners one candidate puts in a cell
 
 
 def lens_moved_px(a: CameraModel, b: CameraModel) -> float:

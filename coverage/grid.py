@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.candidates import Ranges
+from calibcoach.coverage.candidates import Ranges, region_cell_counts
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.pose import BoardPose
 
@@ -125,15 +125,7 @@ class CoverageMap:
             corner_sets: per frame (N, 2) corner pixels.
             poses: per frame (tilt, tilt_x, tilt_y, distance_m) as `BoardPose` has them, or None (no pose).
         """
-        w, h = self.image_size
-        cells = self.rows * self.cols
-        sizes = [len(c) for c in corner_sets]
-        px = np.concatenate([np.asarray(c, np.float64).reshape(-1, 2) for c in corner_sets]) if corner_sets else np.zeros((0, 2))
-        cols = np.clip((px[:, 0] / w * self.cols).astype(int), 0, self.cols - 1)
-        rows = np.clip((px[:, 1] / h * self.rows).astype(int), 0, self.rows - 1)
-        owner = np.repeat(np.arange(len(corner_sets)), sizes)
-        counts = np.bincount(owner * cells + rows * self.cols + cols, minlength=len(corner_sets) * cells)
-        counts = counts.astype(np.float64).reshape(len(corner_sets), self.rows, self.cols)
+        counts = region_cell_counts(corner_sets, self.image_size, (self.rows, self.cols)).astype(np.float64)
         made = []
         for region_counts, pose in zip(counts, poses, strict=True):
             if pose is None:
