@@ -120,6 +120,27 @@ def schur_updates(information: np.ndarray, jacobians: Sequence[tuple[np.ndarray,
     return 0.5 * (S + np.swapaxes(S, -1, -2))
 
 
+def stacked_view_jacobians(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray,
+                           tvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every view's `view_jacobian` in one padded stack: J_intr (V, R, P) and J_pose (V, R, 6), R the
+    most rows a view has; a view's rows beyond its own 2N are zero (they add nothing to a normal
+    equation), so all views' normal equations form and reduce in batches.
+
+    Raises:
+        ValueError: unless there is one pose per view.
+    """
+    rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
+    if len(views) != rv.shape[0] or len(views) != tv.shape[0]:
+        raise ValueError(f"expected one pose per view; got {len(views)} views, {rv.shape[0]} rvecs, {tv.shape[0]} tvecs")
+    P = len(intrinsic_names(camera.model))
+    rows = 2 * max((v.object_points_m.shape[0] for v in views), default=0)
+    J_intr, J_pose = np.zeros((len(views), rows, P)), np.zeros((len(views), rows, 6))
+    for k, (v, r, t) in enumerate(zip(views, rv, tv, strict=True)):
+        Ji, Jp = view_jacobian(camera, v.object_points_m, r, t)
+        J_intr[k, : Ji.shape[0]], J_pose[k, : Jp.shape[0]] = Ji, Jp
+    return J_intr, J_pose
+
+
 def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:
     """S = A - sum_v B_v C_v^-1 B_v^T, the intrinsics' information with all poses marginalised.
 
@@ -130,19 +151,13 @@ def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.n
     Returns:
         (P, P) float64 information for unit pixel noise (per coordinate).
     """
-    rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
     P = len(intrinsic_names(camera.model))
-    if len(views) != rv.shape[0] or len(views) != tv.shape[0]:
-        raise ValueError(f"expected one pose per view; got {len(views)} views, {rv.shape[0]} rvecs, {tv.shape[0]} tvecs")
+    J_intr, J_pose = stacked_view_jacobians(camera, views, rvecs, tvecs)  # one pose per view, or ValueError
     if not views:
         return np.zeros((P, P))
-    # every view's rows in one padded stack (zero rows add nothing), its pose marginalised in a batch
-    rows = 2 * max(v.object_points_m.shape[0] for v in views)
-    J_intr, J_pose = np.zeros((len(views), rows, P)), np.zeros((len(views), rows, 6))
-    for k, (v, r, t) in enumerate(zip(views, rv, tv, strict=True)):
-        Ji, Jp = view_jacobian(camera, v.object_points_m, r, t)
-        scale = np.sqrt(v.information_weight)  # a view counting for w of an independent one: rows x sqrt(w)
-        J_intr[k, : Ji.shape[0]], J_pose[k, : Jp.shape[0]] = scale * Ji, scale * Jp
+    # a view counting for w of an independent one: its rows x sqrt(w)
+    scale = np.sqrt(np.array([v.information_weight for v in views], np.float64))[:, None, None]
+    J_intr, J_pose = scale * J_intr, scale * J_pose
     A = J_intr.reshape(-1, P).T @ J_intr.reshape(-1, P)
     B = np.swapaxes(J_intr, 1, 2) @ J_pose  # (V, P, 6)
     C = np.swapaxes(J_pose, 1, 2) @ J_pose  # (V, 6, 6)
