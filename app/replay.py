@@ -73,10 +73,9 @@ class _ChildCounts:
 
 
 def _scanned_in_child(source: FrameSource, board: BoardSpec, counts: _ChildCounts, *, settle: CharucoBoardDetector,
-                      workers: int, every_frame: bool) -> Iterator[Seen]:
+                      frame_bytes: int, workers: int, every_frame: bool) -> Iterator[Seen]:
     """`detected_frames` run in a child process; the print's variant, the scan's counts and the
     source's unreadable frames are mirrored into `settle`, `counts` and `source.skipped` as they come."""
-    width, height = source.info.image_size or (0, 0)
     scans: list[HeldFrameScan] = []  # the child's scan, in the child
 
     def make_seen() -> Iterator[Seen]:  # runs in the child, on its copies of source and settle
@@ -91,7 +90,7 @@ def _scanned_in_child(source: FrameSource, board: BoardSpec, counts: _ChildCount
         if variant is not None and not settle.settled:
             settle.settle(legacy=variant[0], inverted=variant[1])
 
-    return scanned_in_child(make_seen, width * height * 3, state=state, apply_state=apply_state)
+    return scanned_in_child(make_seen, frame_bytes, state=state, apply_state=apply_state)
 
 
 def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterator[tuple[Frame, Detection]]:
@@ -136,7 +135,8 @@ def run_replay(
     frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
     if info.kind in TRACKED_KINDS and frame_bytes and in_child and fork_available():
         counts = _ChildCounts()
-        feed.run(_scanned_in_child(source, board, counts, settle=settle, workers=workers, every_frame=every_frame))
+        feed.run(_scanned_in_child(source, board, counts, settle=settle, frame_bytes=frame_bytes, workers=workers,
+                                   every_frame=every_frame))
         tracked = counts.tracked
     else:
         feed.run(detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame))
