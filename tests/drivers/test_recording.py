@@ -12,6 +12,7 @@ import pytest
 from calibcoach.drivers.base import Frame, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.recording import RecordingWriter, read_truth, write_truth
 from calibcoach.drivers.replay import RecordingSource, open_source
 
@@ -59,6 +60,20 @@ def test_round_trip_pixels_controls_board(tmp_path: Path, grey: bool) -> None:
         assert np.array_equal(after.image, before.image)
         assert after.timestamp_ns == before.timestamp_ns
         assert dict(after.controls) == dict(before.controls)
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_recorded_frames_replay_through_the_fast_png_decoder(tmp_path: Path, grey: bool) -> None:
+    """A recording's PNGs are Sub-filtered, the rows drivers/png_fast.py undoes without libpng."""
+    written = _frames([0, 1], grey=grey, seed=3)
+    with _writer(tmp_path / "rec") as writer:
+        for frame in written:
+            writer.write(frame)
+    for frame in written:
+        data = (tmp_path / "rec" / "frames" / f"{frame.index:06d}.png").read_bytes()
+        decoded = decode_png(data)
+        assert decoded is not None, "a recorded frame fell back to libpng: its rows are not all Sub-filtered"
+        assert np.array_equal(decoded, frame.image)
 
 
 def _crash_cut_copy(tmp_path: Path) -> Path:
