@@ -2,9 +2,9 @@
 
 A replay decodes every frame of a folder, and decoding was ~45% of its time: libpng (through
 `cv2.imdecode`) takes ~5-7 ms for a 720p grey PNG (OpenCV 5.0-5.1), most of it zlib 1.2's
-inflate. ISA-L's inflate (`isal`) does the same in ~1.1-1.6 ms, and OpenCV's PNG encoder (by
-default) filters every row with "Sub" (each byte stored as the difference to the byte one pixel to its left),
-which undoes as a prefix sum along the row, here by doubling in whole-array uint8 additions
+inflate. ISA-L's inflate (`isal`) does the same in ~1.1-1.6 ms, and OpenCV's PNG encoder by
+default filters every row with "Sub" (each byte stored as the difference to the byte one pixel to
+its left), which undoes as a prefix sum along the row, here by doubling in whole-array uint8 additions
 (~0.85 ms). Together ~2.4 ms, and both halves release the GIL, so two decode threads run in
 parallel. The zlib stream's Adler-32 checksum still guards the pixels; a damaged file fails to
 inflate and is left to OpenCV to judge.
@@ -12,8 +12,8 @@ inflate and is left to OpenCV to judge.
 Rows with the Up, Average or Paeth filters (libpng's adaptive choice: other encoders, and OpenCV
 5.1 itself once a compression level is given) cannot be undone in whole-array steps, each byte
 depending on the one before. For those the inflated rows are handed back to libpng in "stored"
-deflate blocks, which it copies instead of inflating, so it only unfilters: 720p grey, 6.5 ms
-instead of 8.0 (ISA-L inflate 1.9, re-wrapping 0.8, libpng 3.7).
+deflate blocks, which it copies instead of inflating, so it only unfilters: 720p grey, 6.1 ms
+instead of 8.2 (of which ISA-L's inflate ~1.9 and libpng's unfiltering ~3.5).
 
 Anything else -- 16-bit, palette, alpha or transparency, interlaced -- returns None, and the caller
 decodes with OpenCV.
