@@ -125,13 +125,32 @@ def judge(
     if calibration.dropped_frames:
         reasons.append(f"{len(calibration.dropped_frames)} outlier frames were dropped before the final solve.")
     if not trusted:
-        reasons.append("Do not use this calibration: capture the missing views (the guidance says where) and run again.")
+        reasons.append(_what_to_do(coverage_short=coverage_completeness < MIN_COVERAGE_TO_TRUST, excess=E / trust_limit,
+                                   noise_px=noise_px))
         return Verdict("insufficient", False, grade_rms, tuple(reasons), thresholds)
     grade = grade_rms
     if coverage_completeness < 0.999 or E > target:
         grade = {"excellent": "good", "good": "acceptable", "acceptable": "poor", "poor": "poor"}[grade_rms]
         reasons.append(f"Graded {grade} rather than {grade_rms}: coverage or the expected error falls short of the target.")
     return Verdict(grade, True, grade_rms, tuple(reasons), thresholds)
+
+
+def _what_to_do(*, coverage_short: bool, excess: float, noise_px: float) -> str:
+    """The refusal's last sentence: what would make the next capture trusted.
+
+    With coverage short, the views it lacks (they also bring E down). With coverage enough and E
+    over its bound by `excess`, the two things E follows: it falls as one over the square root of
+    the number of distinct board poses and in proportion to the corner noise, so either remedy is
+    named with the factor it needs (a dim capture that covered what it must is not told to look
+    for views it already has).
+    """
+    if coverage_short:
+        return "Do not use this calibration: capture the missing views (the guidance says where) and run again."
+    return (f"Do not use this calibration: E must come down {excess:.1f}x. It falls with the square root of the "
+            f"number of distinct board poses and in proportion to the corner noise, so "
+            f"about {excess * excess:.1f}x as many distinct poses (new holds: the frames of one hold count together), or "
+            f"corner noise {excess:.1f}x lower than its {noise_px:.2f} px (more light, a shorter exposure, sharper "
+            "focus), would do it.")
 
 
 def _missing_words(missing: dict[str, list]) -> str:

@@ -150,6 +150,18 @@ def test_E_above_the_trust_bound_is_not_trusted(noise: float) -> None:
     assert has(at, "Graded good rather than excellent")
 
 
+def test_a_refusal_with_enough_coverage_names_poses_and_noise_not_missing_views() -> None:
+    """A dim capture that covered what it must is told what E follows, with the factor each remedy needs."""
+    v = verdict(rms=0.2, coverage=1.0, E=0.3, noise=0.14)  # E 1.5x its 0.2 px bound
+    assert not v.trusted
+    last = v.reasons[-1]
+    assert last.startswith("Do not use this calibration: E must come down 1.5x.")
+    assert "about 2.2x as many distinct poses" in last and "corner noise 1.5x lower than its 0.14 px" in last
+    assert "missing views" not in last
+    short = verdict(rms=0.2, coverage=0.5, E=0.3, noise=0.14)  # coverage short as well: the views come first
+    assert short.reasons[-1] == "Do not use this calibration: capture the missing views (the guidance says where) and run again."
+
+
 def test_the_trust_bound_is_the_noise_when_the_noise_is_larger() -> None:
     v = verdict(rms=0.8, E=0.35, noise=0.4)
     assert v.trusted and v.grade == "poor"  # acceptable by the table, one down for E above its target
