@@ -284,8 +284,14 @@ class RecordingSource(FrameSource):
     def frames(self) -> Iterator[Frame]:
         self.skipped = list(self._contents.problems)
         paths = [self.path / entry["file"] for entry in self._contents.entries]
-        # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3).
-        for entry, path, image in zip(self._contents.entries, paths, _decoded_ahead(paths, cv2.IMREAD_UNCHANGED, ahead=frames_ahead(3 * self._image_size[0] * self._image_size[1])), strict=True):
+        # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3). The
+        # fast PNG decoder when it gives the first frame's pixels exactly (as for a folder).
+        first = next((path for path in paths if path.is_file()), None)
+        decoded = None if first is None else _read_image(first, cv2.IMREAD_UNCHANGED)
+        fast_png = decoded is not None and _fast_png_decodes(first, decoded)
+        ahead = frames_ahead(3 * self._image_size[0] * self._image_size[1])
+        for entry, path, image in zip(self._contents.entries, paths,
+                                      _decoded_ahead(paths, cv2.IMREAD_UNCHANGED, ahead=ahead, fast_png=fast_png), strict=True):
             if image is None:
                 self.skipped.append(SkippedFrame(entry["index"], path.name, _unreadable_reason(path)))
                 continue
