@@ -341,7 +341,7 @@ def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS, *, ahead: int 
 def _read_image(path: Path, flags: int = _IMREAD_FLAGS, *, fast_png: bool = False) -> np.ndarray | None:
     """Decode an image file, or None if it is missing, empty or not decodable (never raises).
 
-    `fast_png`: try drivers/png_fast.py first (~2.6x faster on the PNGs OpenCV writes by default, ~1.3x on
+    `fast_png`: try drivers/png_fast.py first (~2.6x faster on the PNGs OpenCV writes by default, ~1.4x on
     adaptively filtered ones), OpenCV if it declines.
     """
     try:
