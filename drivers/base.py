@@ -38,6 +38,9 @@ class Frame:
     image: np.ndarray  # (H, W) uint8 grey or (H, W, 3) uint8 BGR
     name: str = ""  # file name for folder sources, "" otherwise
     controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))  # focus etc.
+    # the grey image of a BGR frame once converted: a replayed frame is asked for it 2-4 times
+    # (thumbnail, detection or tracking, sharpness), 0.4 ms each at 720p
+    _grey: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -45,12 +48,14 @@ class Frame:
         return int(self.image.shape[1]), int(self.image.shape[0])
 
     def grey(self) -> np.ndarray:
-        """The image as (H, W) uint8 grey, converting BGR once when needed."""
+        """The image as (H, W) uint8 grey, converting BGR once (the conversion is kept with the frame)."""
         if self.image.ndim == 2:
             return self.image
-        import cv2
+        if self._grey is None:
+            import cv2
 
-        return cv2.cvtColor(self.image, cv2.COLOR_BGR2GRAY)
+            object.__setattr__(self, "_grey", cv2.cvtColor(self.image, cv2.COLOR_BGR2GRAY))  # frozen: a cache, not state
+        return self._grey  # type: ignore[return-value]
 
 
 @dataclass(frozen=True, slots=True)

