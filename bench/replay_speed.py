@@ -20,6 +20,7 @@ import sys
 import tempfile
 import time
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -29,7 +30,21 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import IMAGE_EXTENSIONS
 
 
-def plain_loop(files: list[Path], spec: BoardSpec) -> tuple[float, int]:
+def _greys(source: list[Path] | Path) -> Iterator[np.ndarray]:
+    """The grey frames of a folder's files (imread) or of a video (VideoCapture, as a user would read it)."""
+    if isinstance(source, list):
+        for f in source:
+            yield cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        return
+    capture = cv2.VideoCapture(str(source))
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            return
+        yield cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+
+
+def plain_loop(source: list[Path] | Path, spec: BoardSpec) -> tuple[float, int]:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     board = spec.cv_board()
@@ -37,8 +52,7 @@ def plain_loop(files: list[Path], spec: BoardSpec) -> tuple[float, int]:
     start = time.perf_counter()
     obj, img = [], []
     size = None
-    for f in files:
-        grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+    for grey in _greys(source):
         size = grey.shape[::-1]
         corners, ids, _, _ = detector.detectBoard(grey)
         if ids is not None and len(ids) >= 6:
@@ -83,7 +97,7 @@ def calibcoach_run(folder: Path) -> tuple[float, str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", type=Path, nargs="?", help="a folder of images (default: render one)")
+    parser.add_argument("folder", type=Path, nargs="?", help="a folder of images or a video file (default: render a folder)")
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--style", default="careful", choices=("careful", "sloppy", "frontal"),
                         help="handheld style of the rendered capture")
@@ -93,16 +107,19 @@ def main() -> int:
         from accuracy import rendered  # bench/accuracy.py renders and caches captures
 
         args.folder = rendered("webcam720", args.style, seconds=784 / 30, fps=30.0) / "frames"
-    files = sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    video = args.folder.is_file()  # a video file: read with VideoCapture, one frame after the other
+    files = [args.folder] if video else sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     for f in files:  # warm the page cache for both
         f.read_bytes()
-    plain = [plain_loop(files, BoardSpec()) for _ in range(args.runs)]
+    plain = [plain_loop(args.folder if video else files, BoardSpec()) for _ in range(args.runs)]
     ours = [calibcoach_run(args.folder) for _ in range(args.runs)]
     p, o = float(np.median([t for t, _ in plain])), float(np.median([t for t, _ in ours]))
-    print(f"plain loop (imread + detectBoard x {len(files)} + calibrateCamera on {plain[0][1]}): {p:.2f} s")
+    read = "VideoCapture.read" if video else "imread"
+    print(f"plain loop ({read} + detectBoard on every frame + calibrateCamera on {plain[0][1]}): {p:.2f} s")
     print(f"calibcoach calibrate (whole command, start-up included):          {o:.2f} s")
     print(f"  {ours[0][1]}")
-    print(f"  PNG rows of {files[0].name}: {png_filters(files[0])} (how they were filtered decides the decoding cost, README)")
+    if not video:
+        print(f"  PNG rows of {files[0].name}: {png_filters(files[0])} (how they were filtered decides the decoding cost, README)")
     print(f"ratio calibcoach / plain: {o / p:.2f}")
     return 0
 
