@@ -95,7 +95,7 @@ class Lockstep(FrameSource):
                 return super().grey()
 
         for frame in self.inner.frames():
-            yield Taken(**{f.name: getattr(frame, f.name) for f in fields(frame)})
+            yield Taken(**{f.name: getattr(frame, f.name) for f in fields(frame) if f.init})
             with self._changed:
                 if not self._changed.wait_for(lambda t=frame.timestamp_ns: t in self._taken, timeout=30):
                     raise TimeoutError("the live loop took no frame for 30 s")
