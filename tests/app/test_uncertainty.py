@@ -334,3 +334,36 @@ def test_weighted_refinement_discounts_noisy_views(model):
         plain.append(projection_difference(cam, raw.camera).rms_px)
         weighted.append(projection_difference(cam, refined).rms_px)
     assert np.median(weighted) < 0.7 * np.median(plain), (plain, weighted)
+
+
+# A rational model solved on a 104 deg 1080p render whose numerator and denominator vanish together
+# near r = 1.465: grid point (row 16, column 0), at the lower-left corner, sits on that 0/0.
+_DEGENERATE_RATIONAL = CameraModel(
+    "rational",
+    np.array([[1081.562981207004, 0.0, 954.8921682265093], [0.0, 1080.7496026010188, 542.9491565592243], [0.0, 0.0, 1.0]]),
+    np.array([-0.529811834641253, -0.012583269498551588, 0.00039272776311231655, -0.0002932294154556247,
+              0.019742249474090902, -0.17946535790730195, -0.2593887736256844, 0.058685330378585115]),
+    (1920, 1080),
+)
+
+
+def test_a_degenerate_point_of_the_model_is_left_out_of_E() -> None:
+    cam = _DEGENERATE_RATIONAL
+    gx, gy = U.image_grid(cam.image_size)
+    everywhere = np.ones((gy.size, gx.size), bool)
+    bad = U.degenerate_points(cam, gx, gy, everywhere)
+    assert np.argwhere(bad).tolist() == [[16, 0]]
+    cov = np.diag(np.array([0.09, 0.09, 0.15, 0.2, 0.05, 0.02, 1e-5, 2e-5, 4e-3, 0.05, 6e-3, 0.014]) ** 2)
+    umap = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda x, y: everywhere)
+    assert not umap.covered[16, 0] and umap.covered.sum() == everywhere.sum() - 1
+    # E is what the other points say: the same as with that point never covered
+    without = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda x, y: everywhere & ~bad)
+    assert umap.expected_error_px == pytest.approx(without.expected_error_px, rel=1e-12)
+    assert umap.error_px[16, 0] > 1e3 * np.median(umap.error_px)  # the map still shows it as it is
+
+
+def test_an_ordinary_model_has_no_degenerate_points() -> None:
+    for cam in (CameraModel.from_fov(SIZE, 70.0), CameraModel.from_fov(SIZE, 100.0, "rational"),
+                CameraModel.from_fov(SIZE, 150.0, "fisheye")):
+        gx, gy = U.image_grid(cam.image_size)
+        assert not U.degenerate_points(cam, gx, gy, np.ones((gy.size, gx.size), bool)).any(), cam.model
