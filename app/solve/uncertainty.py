@@ -247,6 +247,14 @@ def projection_jacobian(
     Returns:
         (GY, GX, 2, P) float64 px per parameter unit.
     """
+    J_intr, J_rot = _grid_jacobians(camera, grid_x_px, grid_y_px, distance_m=distance_m)
+    return _rotation_absorbed(J_intr, J_rot, fit_mask) if absorb_rotation else J_intr
+
+
+def _grid_jacobians(camera: CameraModel, grid_x_px: np.ndarray, grid_y_px: np.ndarray, *,
+                    distance_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(GY, GX, 2, P) d(pixel)/d(intrinsics) and (GY, GX, 2, 3) d(pixel)/d(rotation) of the point seen
+    at each grid pixel (see `projection_jacobian`)."""
     gx, gy = np.meshgrid(np.asarray(grid_x_px, np.float64), np.asarray(grid_y_px, np.float64))
     rays = camera.unproject(np.stack([gx.reshape(-1), gy.reshape(-1)], axis=1))  # (G, 3) unit
     if camera.model == "fisheye":
@@ -258,14 +266,19 @@ def projection_jacobian(
         # At the identity pose the rvec columns are the pixel motion of a small rotation of the ray.
         _, J = cv2.projectPoints(rays * d, np.zeros(3), np.zeros(3), camera.camera_matrix, camera.opencv_dist())
         J_intr, J_rot = J[:, 6 : 6 + P], J[:, :3]
+    return J_intr.reshape(gy.shape[0], gy.shape[1], 2, -1), J_rot.reshape(gy.shape[0], gy.shape[1], 2, 3)
+
+
+def _rotation_absorbed(J_intr: np.ndarray, J_rot: np.ndarray, fit_mask: np.ndarray | None) -> np.ndarray:
+    """`J_intr` less the part a common rotation, fitted on `fit_mask`'s points, explains (see `projection_jacobian`)."""
     M = J_intr.reshape(-1, J_intr.shape[-1])  # (2G, P), rows u0, v0, u1, ...
-    if absorb_rotation:
-        R = J_rot.reshape(-1, 3)
-        rows = np.repeat(np.ones(gx.size, bool) if fit_mask is None else np.asarray(fit_mask, bool).reshape(-1), 2)
-        rows = rows if rows.sum() >= 4 else np.ones_like(rows)
-        Rf, Mf = R[rows], M[rows]
-        M = M - R @ (np.linalg.pinv(Rf.T @ Rf, hermitian=True) @ (Rf.T @ Mf))  # R_f^+ M_f via the 3x3 normal matrix
-    return M.reshape(gy.shape[0], gy.shape[1], 2, -1)
+    R = J_rot.reshape(-1, 3)
+    points = J_intr.shape[0] * J_intr.shape[1]
+    rows = np.repeat(np.ones(points, bool) if fit_mask is None else np.asarray(fit_mask, bool).reshape(-1), 2)
+    rows = rows if rows.sum() >= 4 else np.ones_like(rows)
+    Rf, Mf = R[rows], M[rows]
+    M = M - R @ (np.linalg.pinv(Rf.T @ Rf, hermitian=True) @ (Rf.T @ Mf))  # R_f^+ M_f via the 3x3 normal matrix
+    return M.reshape(J_intr.shape)
 
 
 def projection_sigma(jacobian: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -314,10 +327,11 @@ def projection_uncertainty(
     covered = np.zeros((gy.size, gx.size), bool) if covered_mask_fn is None else np.asarray(covered_mask_fn(gx, gy), bool)
     if covered.shape != (gy.size, gx.size):
         raise ValueError(f"covered_mask_fn must return ({gy.size}, {gx.size}) bool, got {covered.shape}")
+    J_intr, J_rot = _grid_jacobians(camera, gx, gy, distance_m=distance_m)
     if covered.any():
-        covered = covered & ~degenerate_points(camera, gx, gy, covered, distance_m=distance_m)
+        covered = covered & ~degenerate_points(J_intr, covered)
     fit = covered if covered.any() else None
-    J = projection_jacobian(camera, gx, gy, distance_m=distance_m, absorb_rotation=absorb_rotation, fit_mask=fit)
+    J = _rotation_absorbed(J_intr, J_rot, fit) if absorb_rotation else J_intr
     weight = pixel_variance_weight(J[covered] if covered.any() else J)
     return UncertaintyMap(grid_x_px=gx, grid_y_px=gy, sigma_px=projection_sigma(J, cov), covered=covered,
                           error_px=projection_error_rms(J, cov), error_weight=weight)
@@ -334,12 +348,11 @@ def projection_uncertainty(
 DEGENERATE_JACOBIAN_RATIO = 1e4
 
 
-def degenerate_points(camera: CameraModel, grid_x_px: np.ndarray, grid_y_px: np.ndarray, covered: np.ndarray, *,
-                      distance_m: float | None = None) -> np.ndarray:
-    """(GY, GX) bool: covered grid points where the model's Jacobian is `DEGENERATE_JACOBIAN_RATIO`
-    times the covered median or more (left out of E and of the rotation fit; see the constant)."""
-    norms = np.linalg.norm(projection_jacobian(camera, grid_x_px, grid_y_px, distance_m=distance_m, absorb_rotation=False),
-                           axis=(-2, -1))
+def degenerate_points(jacobian: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """(GY, GX) bool: covered grid points whose `jacobian` ((GY, GX, 2, P), `projection_jacobian`
+    without the rotation absorbed) is `DEGENERATE_JACOBIAN_RATIO` times the covered median or more
+    (left out of E and of the rotation fit; see the constant)."""
+    norms = np.linalg.norm(jacobian, axis=(-2, -1))
     with np.errstate(invalid="ignore"):
         return covered & ~(norms <= DEGENERATE_JACOBIAN_RATIO * np.median(norms[covered]))
 

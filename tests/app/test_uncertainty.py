@@ -351,7 +351,7 @@ def test_a_degenerate_point_of_the_model_is_left_out_of_E() -> None:
     cam = _DEGENERATE_RATIONAL
     gx, gy = U.image_grid(cam.image_size)
     everywhere = np.ones((gy.size, gx.size), bool)
-    bad = U.degenerate_points(cam, gx, gy, everywhere)
+    bad = U.degenerate_points(U.projection_jacobian(cam, gx, gy, absorb_rotation=False), everywhere)
     assert np.argwhere(bad).tolist() == [[16, 0]]
     cov = np.diag(np.array([0.09, 0.09, 0.15, 0.2, 0.05, 0.02, 1e-5, 2e-5, 4e-3, 0.05, 6e-3, 0.014]) ** 2)
     umap = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda x, y: everywhere)
@@ -366,4 +366,5 @@ def test_an_ordinary_model_has_no_degenerate_points() -> None:
     for cam in (CameraModel.from_fov(SIZE, 70.0), CameraModel.from_fov(SIZE, 100.0, "rational"),
                 CameraModel.from_fov(SIZE, 150.0, "fisheye")):
         gx, gy = U.image_grid(cam.image_size)
-        assert not U.degenerate_points(cam, gx, gy, np.ones((gy.size, gx.size), bool)).any(), cam.model
+        plain = U.projection_jacobian(cam, gx, gy, absorb_rotation=False)
+        assert not U.degenerate_points(plain, np.ones((gy.size, gx.size), bool)).any(), cam.model
