@@ -14,12 +14,10 @@ ratio calibcoach / plain (the target is <= 0.5).
 from __future__ import annotations
 
 import argparse
-import struct
 import subprocess
 import sys
 import tempfile
 import time
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +25,7 @@ import cv2
 import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.png_fast import row_filters
 from calibcoach.drivers.replay import IMAGE_EXTENSIONS
 
 
@@ -65,22 +64,10 @@ def plain_loop(source: list[Path] | Path, spec: BoardSpec) -> tuple[float, int]:
 
 def png_filters(path: Path) -> str:
     """Which PNG row filters a file uses, e.g. "Sub 720" (OpenCV's default) or "Average 404, Paeth 306"."""
-    data = path.read_bytes()
-    if path.suffix.lower() != ".png" or data[:8] != b"\x89PNG\r\n\x1a\n":
-        return "not a PNG"
-    pos, idat, header = 8, [], None
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack_from(">I4s", data, pos)
-        if kind == b"IHDR":
-            header = struct.unpack_from(">IIBB", data, pos + 8)
-        elif kind == b"IDAT":
-            idat.append(data[pos + 8 : pos + 8 + length])
-        pos += 12 + length
-    width, height, depth, colour = header
-    channels = {0: 1, 2: 3, 4: 2, 6: 4}.get(colour, 1)
-    stride = width * channels * max(depth // 8, 1) + 1
-    rows = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8)[: height * stride].reshape(height, stride)
-    counts = np.bincount(rows[:, 0], minlength=5)
+    filters = row_filters(path.read_bytes()) if path.suffix.lower() == ".png" else None
+    if filters is None:
+        return "not an 8-bit grey or RGB PNG (decoded by OpenCV)"
+    counts = np.bincount(filters, minlength=5)
     return ", ".join(f"{name} {n}" for name, n in zip(("None", "Sub", "Up", "Average", "Paeth"), counts, strict=False) if n)
 
 

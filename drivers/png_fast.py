@@ -40,6 +40,37 @@ _BAIL_CHUNKS = {b"tRNS", b"PLTE"}  # transparency or a palette: OpenCV's output 
 
 def decode_png(data: bytes | memoryview) -> np.ndarray | None:
     """(H, W) uint8 grey or (H, W, 3) uint8 BGR, exactly as `cv2.imdecode` gives it; None when not handled here."""
+    inflated = _inflated_rows(data)
+    if inflated is None:
+        return None
+    header, raw, rows = inflated
+    width, height, _depth, colour = header[:4]
+    channels = 1 if colour == _GREY else 3
+    filters = rows[:, 0]
+    if np.any(filters > _SUB):
+        return _unfiltered_by_libpng(header, raw)
+    pixels = rows[:, 1:]
+    # Sub: each byte adds the reconstructed byte one pixel (`channels` bytes) to its left, mod 256
+    image = _row_prefix_sums(pixels.reshape(height, width, channels)).reshape(height, -1)
+    unfiltered = filters == _NONE
+    if unfiltered.any():
+        image[unfiltered] = pixels[unfiltered]
+    if channels == 1:
+        return image
+    # RGB as stored -> BGR as OpenCV gives it: OpenCV's swap takes 0.2 ms at 720p, NumPy's reversed copy 2.6
+    return cv2.cvtColor(image.reshape(height, width, 3), cv2.COLOR_RGB2BGR)
+
+
+def row_filters(data: bytes | memoryview) -> np.ndarray | None:
+    """(H,) uint8 each row's PNG filter type (0 None, 1 Sub, 2 Up, 3 Average, 4 Paeth) of a PNG this
+    module decodes; None for any other file."""
+    inflated = _inflated_rows(data)
+    return None if inflated is None else inflated[2][:, 0].copy()
+
+
+def _inflated_rows(data: bytes | memoryview) -> tuple[tuple[int, ...], np.ndarray, np.ndarray] | None:
+    """(IHDR fields, the inflated bytes, their (H, 1 + W * channels) rows) of an 8-bit grey or RGB,
+    non-interlaced PNG without palette or transparency; None for anything else or a damaged file."""
     view = memoryview(data)
     if bytes(view[:8]) != PNG_SIGNATURE:
         return None
@@ -70,20 +101,7 @@ def decode_png(data: bytes | memoryview) -> np.ndarray | None:
     stride = width * channels + 1
     if raw.size < height * stride:
         return None
-    rows = raw[: height * stride].reshape(height, stride)
-    filters = rows[:, 0]
-    if np.any(filters > _SUB):
-        return _unfiltered_by_libpng(header, raw)
-    pixels = rows[:, 1:]
-    # Sub: each byte adds the reconstructed byte one pixel (`channels` bytes) to its left, mod 256
-    image = _row_prefix_sums(pixels.reshape(height, width, channels)).reshape(height, -1)
-    unfiltered = filters == _NONE
-    if unfiltered.any():
-        image[unfiltered] = pixels[unfiltered]
-    if channels == 1:
-        return image
-    # RGB as stored -> BGR as OpenCV gives it: OpenCV's swap takes 0.2 ms at 720p, NumPy's reversed copy 2.6
-    return cv2.cvtColor(image.reshape(height, width, 3), cv2.COLOR_RGB2BGR)
+    return header, raw, raw[: height * stride].reshape(height, stride)
 
 
 def _row_prefix_sums(pixels: np.ndarray) -> np.ndarray:
