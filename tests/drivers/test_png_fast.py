@@ -1,8 +1,10 @@
 """The fast PNG decoder gives OpenCV's pixels exactly, declines what it does not handle, and a
-folder of OpenCV-written PNGs replays through it with the frames OpenCV would give."""
+folder of OpenCV-written PNGs replays through it with the frames OpenCV would give -- both with
+the C unfilter the install builds and with the NumPy and libpng fallback used where it is not built."""
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 import zlib
 from pathlib import Path
@@ -11,8 +13,28 @@ import cv2
 import numpy as np
 import pytest
 
+from calibcoach.drivers import png_fast
 from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.replay import ImageFolderSource
+
+
+@pytest.fixture(autouse=True, params=["C unfilter", "NumPy and libpng"])
+def unfilter_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Every test runs on both ways of undoing the row filters."""
+    if request.param == "NumPy and libpng":
+        monkeypatch.setattr(png_fast, "_unfilter_in_c", None)
+    return request.param
+
+
+def test_the_c_unfilter_was_built() -> None:
+    assert importlib.util.find_spec("calibcoach.drivers._png_unfilter") is not None, (
+        "calibcoach.drivers._png_unfilter did not build (pyproject ext-modules): install a C compiler and the "
+        "Python headers, then `pip install -e .` again; decoding falls back on NumPy and libpng, ~2x slower")
+
+
+def test_an_unknown_row_filter_is_declined_not_misread() -> None:
+    data = _handmade(np.random.default_rng(6).integers(0, 256, (9, 11), dtype=np.uint8), 5)  # types end at 4
+    assert decode_png(data) is None
 
 
 def _cv(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
