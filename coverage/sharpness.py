@@ -93,30 +93,32 @@ def edge_blur(grey: np.ndarray, corners_px: np.ndarray, object_points_m: np.ndar
     x1, y1 = np.ceil(pts.max(axis=0)).astype(int)
     h, w = grey.shape
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1 + 1, w), min(y1 + 1, h)
-    roi = grey[y0:y1, x0:x1].astype(np.float32)
-    if roi.shape[0] < 8 or roi.shape[1] < 8:
+    if y1 - y0 < 8 or x1 - x0 < 8:
         return inf
     contrast = percentile_spread(grey[y0:y1, x0:x1], 5.0, 95.0)
     if contrast < 10:
         return inf
-    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    # Sobel of the uint8 pixels scaled by 1/8 (a power of two): the same float32 values as Sobel of a
+    # float32 copy divided by 8, without the copy or the division
+    gx = cv2.Sobel(grey[y0:y1, x0:x1], cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(grey[y0:y1, x0:x1], cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
     mag = np.sqrt(gx * gx + gy * gy)
-    strong = mag > 0.25 * float(np.percentile(mag, 99.5))
-    if not strong.any():
+    strong = np.flatnonzero(mag > 0.25 * float(upper_percentile(mag, 99.5)))
+    if strong.size == 0:
         return inf
     # the board's axes in the image at its centre, from the homography's Jacobian there
     centre = np.asarray(object_points_m, np.float64)[:, :2].mean(axis=0)
     u, v = _image_axes(H, centre)
     normals = {"x": np.array([-u[1], u[0]]), "y": np.array([-v[1], v[0]])}  # normals of edges along x / y
-    ex, ey = gx[strong] / mag[strong], gy[strong] / mag[strong]
+    strong_mag = mag.ravel()[strong]
+    ex, ey = gx.ravel()[strong] / strong_mag, gy.ravel()[strong] / strong_mag
     widths = {}
     for name, n in normals.items():
         family = np.abs(ex * n[0] + ey * n[1]) >= _FAMILY_COS
-        if family.sum() < _MIN_EDGE_PIXELS:
+        if np.count_nonzero(family) < _MIN_EDGE_PIXELS:
             widths[name] = float("inf")
             continue
-        g_max = float(np.percentile(mag[strong][family], 95))
+        g_max = float(upper_percentile(strong_mag[family], 95))
         sigma = contrast / (np.sqrt(2 * np.pi) * g_max)
         widths[name] = float(np.sqrt(max(sigma * sigma - _SAMPLING_FLOOR_PX**2, 0.0)))
     return EdgeBlur(widths["x"], widths["y"])
@@ -142,6 +144,33 @@ def percentile_spread(values: np.ndarray, low_pct: float, high_pct: float) -> fl
         return value + (sorted_value(min(below + 1, flat.size - 1)) - value) * (position - below)
 
     return percentile(high_pct) - percentile(low_pct)
+
+
+def upper_percentile(values: np.ndarray, pct: float) -> float:
+    """np.percentile(values, pct) of finite values, bit for bit, for an upper percentile (a few % of the values above it).
+
+    np.percentile partially sorts a copy of every value, pinning the smallest and the largest too;
+    the edge measure asks for the 99.5th and 95th percentiles of ~10^5 gradients a frame (a third
+    of its time). Only the values from the wanted rank up matter, and nearly always they all lie
+    above a quarter of the maximum: those few are partitioned instead (~3x faster), and all of
+    them when that guess holds too few. The index and the interpolation are NumPy's own
+    (method "linear"), so the result is the same number.
+    """
+    flat = np.asarray(values).ravel()
+    n = flat.size
+    q = pct / 100.0
+    virtual = n * q + (1 + q * (1 - 1 - 1)) - 1  # numpy's _compute_virtual_index with alpha = beta = 1
+    below = min(max(int(np.floor(virtual)), 0), n - 1)
+    above = min(below + 1, n - 1)
+    gamma = virtual - below
+    candidates = flat[flat >= flat.max() * 0.25]
+    if candidates.size < n - below:
+        candidates = flat
+    skipped = n - candidates.size  # every skipped value is smaller than every candidate
+    ranked = np.partition(candidates, [below - skipped, above - skipped])
+    a, b = ranked[below - skipped], ranked[above - skipped]
+    diff = b - a  # numpy's _lerp: from the nearer end
+    return b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma
 
 
 def _image_axes(H: np.ndarray, board_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

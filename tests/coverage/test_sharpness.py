@@ -7,7 +7,7 @@ import pytest
 
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
-from calibcoach.coverage.sharpness import edge_blur
+from calibcoach.coverage.sharpness import edge_blur, upper_percentile
 from calibcoach.drivers.sim import LENSES
 from calibcoach.drivers.sim_paths import place_board
 from calibcoach.drivers.sim_render import BoardRenderer, expose
@@ -56,3 +56,20 @@ def test_a_soft_but_unsmeared_image_is_not_called_smeared() -> None:
 
     soft = EdgeBlur(2.60, 2.71)
     assert soft.along_smear_px() > 2.0 and soft.along_widening() < 1.05
+
+
+@pytest.mark.parametrize("pct", [50.0, 95.0, 99.5, 100.0])
+def test_upper_percentile_is_numpys_number_bit_for_bit(pct: float) -> None:
+    rng = np.random.default_rng(int(pct * 10))
+    cases = [
+        rng.gamma(2.0, 3.0, 100_000).astype(np.float32),  # gradient magnitudes: a long upper tail
+        rng.gamma(2.0, 3.0, 777).astype(np.float64),
+        np.concatenate([np.ones(5000, np.float32), [1e6]]).astype(np.float32),  # one outlier: the quarter-max guess holds too few
+        np.full(300, 7.5, np.float32),  # all alike
+        rng.integers(0, 4, 1001).astype(np.float32),  # ties at the wanted ranks
+        np.array([3.0], np.float32),
+    ]
+    for values in cases:
+        expected = np.percentile(values, pct)
+        got = upper_percentile(values, pct)
+        assert got == expected and np.asarray(got).dtype == np.asarray(expected).dtype, (values.size, pct, got, expected)
