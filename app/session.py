@@ -298,10 +298,13 @@ class CalibrationSession(SessionFinish):
             wide = raw.camera.field_of_view_deg()[0] > 110.0
             if wide or (fisheye is not None and fisheye.rms_px < _FISHEYE_FITS_BETTER * raw.rms_px):
                 self.working_model = "fisheye"
-                try:
-                    raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
-                except CalibrationError:
-                    return None
+                if fisheye is not None:  # the check's solve is this very solve (same views, reduced)
+                    raw = fisheye
+                else:
+                    try:
+                        raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
+                    except CalibrationError:
+                        return None
         self.camera = raw.camera
         n_points = sum(v.ids.size for v in self.views)
         self.noise_px = noise_sigma_px(raw.rms_px, n_points=n_points, n_params=len(intrinsic_names(raw.camera.model)),
