@@ -80,8 +80,9 @@ ROW_FUNCTION(unfilter_row_rgb_to_bgr, 3, AT_REVERSED)
 
 /* unfilter(rows, height, stride, bpp, out): `rows` holds `height` rows of 1 + `stride` bytes (the
  * filter byte first); `out` (writable, height * stride bytes) receives the reconstructed pixels,
- * grey (bpp 1) as they are, RGB (bpp 3) in OpenCV's BGR order. Returns None, or raises ValueError for an unknown filter byte or
- * sizes that do not match. The GIL is released while it runs. */
+ * grey (bpp 1) as they are, RGB (bpp 3) in OpenCV's BGR order. Returns None, or raises
+ * ValueError for an unknown filter byte or sizes that do not match. The GIL is released while it
+ * runs. */
 static PyObject *unfilter(PyObject *self, PyObject *args) {
     Py_buffer in, out;
     Py_ssize_t height, stride, bpp;
