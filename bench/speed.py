@@ -40,8 +40,7 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
-from calibcoach.drivers.png_fast import decode_png
-from calibcoach.drivers.replay import open_source
+from calibcoach.drivers.replay import decode_image, open_source
 from calibcoach.drivers.sim import LENSES
 
 ROOT = Path(__file__).resolve().parent  # a bench script may find its own folder; the package never does
@@ -147,19 +146,13 @@ def logging_times(frames: list[Frame], outcomes: list[FrameOutcome]) -> dict[str
     return {k: v[1:] for k, v in times.items()}
 
 
-def _decode(data: np.ndarray) -> np.ndarray | None:
-    """A recording's frame as its replay decodes it: drivers/png_fast.py, OpenCV where it declines."""
-    image = decode_png(data.data)
-    return cv2.imdecode(data, cv2.IMREAD_ANYCOLOR) if image is None else image
-
-
 def stage_times_once(folder: Path) -> tuple[dict[str, list[float]], int]:
     """ms per frame for each stage on the frames of one cached recording, and the frames with a board."""
     spec = BoardSpec()
     pngs = [np.fromfile(p, np.uint8) for p in sorted((folder / "frames").glob("*.png"))]
     frames = list(open_source(folder))
     greys = [f.grey() for f in frames]
-    stages = {"decode": timed_each(pngs, _decode)}
+    stages = {"decode": timed_each(pngs, lambda b: decode_image(b, fast_png=True))}  # as a replay decodes them
     bare = bare_detector(spec)
     cv2.setNumThreads(DEFAULT_THREADS)
     stages[f"OpenCV detect, {DEFAULT_THREADS} threads"] = timed_each(greys, bare.detectBoard)

@@ -95,13 +95,14 @@ def edge_blur(grey: np.ndarray, corners_px: np.ndarray, object_points_m: np.ndar
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1 + 1, w), min(y1 + 1, h)
     if y1 - y0 < 8 or x1 - x0 < 8:
         return inf
-    contrast = percentile_spread(grey[y0:y1, x0:x1], 5.0, 95.0)
+    board = grey[y0:y1, x0:x1]
+    contrast = percentile_spread(board, 5.0, 95.0)
     if contrast < 10:
         return inf
     # Sobel of the uint8 pixels scaled by 1/8 (a power of two): the same float32 values as Sobel of a
     # float32 copy divided by 8, without the copy or the division
-    gx = cv2.Sobel(grey[y0:y1, x0:x1], cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(grey[y0:y1, x0:x1], cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    gx = cv2.Sobel(board, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(board, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
     mag = np.sqrt(gx * gx + gy * gy)
     strong = np.flatnonzero(mag > 0.25 * float(upper_percentile(mag, 99.5)))
     if strong.size == 0:
