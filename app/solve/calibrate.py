@@ -10,7 +10,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -194,19 +194,9 @@ def _solve_fisheye_opencv(views: Sequence[View], image_size: tuple[int, int], in
     obj = [np.ascontiguousarray(v.object_points_m, np.float64).reshape(1, -1, 3) for v in views]
     img = [np.ascontiguousarray(v.image_points_px, np.float64).reshape(1, -1, 2) for v in views]
     flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
-    seeds: list[CameraModel] = []
-    if initial is not None and initial.model == "fisheye":
-        seeds.append(initial)
-    try:  # a narrow lens is seeded best by its pinhole solve (equidistant ~ pinhole near the axis)
-        pinhole = solve(views, image_size, "pinhole").camera
-        if pinhole.field_of_view_deg()[0] < 100.0:
-            seeds.append(CameraModel("fisheye", pinhole.camera_matrix, np.zeros(4), image_size))
-    except CalibrationError:
-        pass
-    seeds += [CameraModel.from_fov(image_size, fov, "fisheye") for fov in _FISHEYE_SEED_HFOV_DEG]
     best: RawSolution | None = None
     failures: list[str] = []
-    for seed in seeds:
+    for number, seed in enumerate(_fisheye_seeds(views, image_size, initial)):
         try:
             rms, K, D, rvecs, tvecs = cv2.fisheye.calibrate(
                 obj, img, tuple(image_size), seed.camera_matrix.copy(), seed.dist_coeffs.reshape(4, 1).copy(),
@@ -226,14 +216,31 @@ def _solve_fisheye_opencv(views: Sequence[View], image_size: tuple[int, int], in
             continue
         if best is None or sol.rms_px < best.rms_px:
             best = sol
-        if best.rms_px < 1.0 and seed is seeds[0]:
-            break  # the first seed converged well: the others only cost time
+        if best.rms_px < 1.0 and number == 0:
+            break  # the first seed converged well: the others only cost time (and are never built)
     if best is None:
         raise CalibrationError(
             f"the fisheye (Kannala-Brandt) solve failed from every start ({'; '.join(sorted(set(failures)))}); "
             "check the board settings, or try --model rational"
         )
     return best
+
+
+def _fisheye_seeds(views: Sequence[View], image_size: tuple[int, int], initial: CameraModel | None) -> Iterator[CameraModel]:
+    """Starts for cv2.fisheye.calibrate, best first, each built only when asked for: the caller's
+    fisheye guess, then a narrow lens's pinhole solve (equidistant ~ pinhole near the axis), then
+    field-of-view guesses. Lazily, because a warm start that converges ends the search, and the
+    pinhole solve it would otherwise pay for costs as much as the fisheye basin search itself."""
+    if initial is not None and initial.model == "fisheye":
+        yield initial
+    try:
+        pinhole = solve(views, image_size, "pinhole").camera
+    except CalibrationError:
+        pinhole = None
+    if pinhole is not None and pinhole.field_of_view_deg()[0] < 100.0:
+        yield CameraModel("fisheye", pinhole.camera_matrix, np.zeros(4), image_size)
+    for fov in _FISHEYE_SEED_HFOV_DEG:
+        yield CameraModel.from_fov(image_size, fov, "fisheye")
 
 
 def reprojection_residuals(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> list[np.ndarray]:

@@ -426,3 +426,22 @@ def test_a_fisheye_view_whose_pose_cannot_be_initialised_is_left_out_not_fatal()
     assert "cannot initialise" in calibration.dropped_frames[0].reason
     without = robust_calibrate(views, camera.image_size, "fisheye")  # the same as never having seen it
     assert projection_difference(without.camera, calibration.camera, grid=(32, 18)).rms_px < 1e-3
+
+
+def test_a_fisheye_warm_start_that_converges_never_pays_for_the_pinhole_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The pinhole solve that seeds a narrow lens is built only when the caller's guess does not converge.
+    from calibcoach.app.solve import calibrate as C
+
+    camera = LENSES["fisheye150"]
+    rng = np.random.default_rng(3)
+    views = observe(camera, random_poses(camera, 12, rng, region=(0.1, 0.9), distance_m=(0.3, 0.5), tilt_deg=35,
+                                         max_off_axis_deg=70), rng)
+    models: list[str] = []
+    real_solve = C.solve
+    monkeypatch.setattr(C, "solve", lambda views, size, model, **kw: models.append(model) or real_solve(views, size, model, **kw))
+    cold = C._solve_fisheye_opencv(views, camera.image_size, None, criteria=C._FISHEYE_CRITERIA)
+    assert models == ["pinhole"]  # no guess: the seeds are built, the pinhole one among them
+    models.clear()
+    warm = C._solve_fisheye_opencv(views, camera.image_size, cold.camera, criteria=C._FISHEYE_CRITERIA)
+    assert models == [] and warm.rms_px < 1.0
+    assert projection_difference(cold.camera, warm.camera, grid=(32, 18)).rms_px < 1e-3
