@@ -45,9 +45,20 @@ class Detection:
         )
 
 
-def _aruco_parameters(*, inverted: bool) -> cv2.aruco.DetectorParameters:
+# OpenCV refines the marker corners and then the ChArUco corners with cornerSubPix, stopping once
+# a step is under this (its default). Refining further moved corners away from the truth, most on
+# noisy footage: rms on held frames +1% careful, +2% shaky, +4.5% fisheye, +5.4% dim 720p
+# (bench/results/corner_refinement.md; over the 30 held-out renders 1.43x the error). Refining only
+# tracked frames further (they start from the previous frame's markers, and at 0.1 px inherit part
+# of its error) made them as good as full detections on clean footage but 3.5% worse on dim; so
+# detection and tracking both keep OpenCV's step.
+CORNER_ACCURACY_PX = 0.1
+
+
+def _aruco_parameters(*, inverted: bool, accuracy_px: float = CORNER_ACCURACY_PX) -> cv2.aruco.DetectorParameters:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementMinAccuracy = accuracy_px
     params.detectInvertedMarker = inverted
     return params
 
@@ -59,8 +70,9 @@ class CharucoBoardDetector:
     (e.g. "inverted print") and `spec` carries the settled values.
     """
 
-    def __init__(self, spec: BoardSpec) -> None:
+    def __init__(self, spec: BoardSpec, *, corner_accuracy_px: float = CORNER_ACCURACY_PX) -> None:
         self.spec = spec
+        self._accuracy_px = corner_accuracy_px  # the refinement's stopping step (bench/corner_refinement.py varies it)
         self._settled = spec.legacy is not None and spec.inverted is not None
         self._detector = self._make(legacy=bool(spec.legacy), inverted=bool(spec.inverted))
         self._board = spec.cv_board(legacy=bool(spec.legacy))
@@ -68,7 +80,8 @@ class CharucoBoardDetector:
 
     def _make(self, *, legacy: bool, inverted: bool) -> cv2.aruco.CharucoDetector:
         board = self.spec.cv_board(legacy=legacy)
-        return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), _aruco_parameters(inverted=inverted))
+        return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(),
+                                         _aruco_parameters(inverted=inverted, accuracy_px=self._accuracy_px))
 
     @property
     def settled(self) -> bool:

@@ -81,6 +81,20 @@ def test_a_board_that_moves_further_than_tracking_reaches_is_detected_afresh(rec
     assert detector.track(_demo_grey(recordings_dir, 60), first) is None  # another pose altogether
 
 
+def test_where_a_tracked_corner_stops_depends_on_the_refinements_stopping_step(recordings_dir: Path) -> None:
+    # OpenCV's 0.1 px step leaves a tracked corner near where the previous frame's markers started it
+    # (bench/corner_refinement.py); a finer step lets it settle where a fresh detection's does.
+    grey = _demo_grey(recordings_dir, 0)
+    moved = _shifted(grey, 1.2, -0.8, np.random.default_rng(5))
+    gaps = {}
+    for accuracy in (0.1, 0.001):
+        detector = CharucoBoardDetector(SETTLED, corner_accuracy_px=accuracy)
+        tracked, fresh = detector.track(moved, detector.detect(grey)), detector.detect(moved)
+        _shared, ia, ib = np.intersect1d(tracked.ids, fresh.ids, return_indices=True)
+        gaps[accuracy] = float(np.median(np.linalg.norm(tracked.corners_px[ia] - fresh.corners_px[ib], axis=1)))
+    assert gaps[0.001] < 0.002 < gaps[0.1] < 0.1
+
+
 def test_a_change_of_view_is_detected_in_full_where_it_happens(recordings_dir: Path, tmp_path: Path) -> None:
     folder = _write(tmp_path / "two", _hold(recordings_dir, 0, 9, seed=3) + _hold(recordings_dir, 30, 9, seed=4))
     spec = SETTLED
