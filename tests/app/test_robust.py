@@ -445,3 +445,24 @@ def test_a_fisheye_warm_start_that_converges_never_pays_for_the_pinhole_seed(mon
     warm = C._solve_fisheye_opencv(views, camera.image_size, cold.camera, criteria=C._FISHEYE_CRITERIA)
     assert models == [] and warm.rms_px < 1.0
     assert projection_difference(cold.camera, warm.camera, grid=(32, 18)).rms_px < 1e-3
+
+
+def test_a_fisheye_warm_start_in_its_basin_is_refined_without_opencvs_basin_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The session's and the robust rounds' solves start from the last one: refined from it directly,
+    # they land where a cold start's basin search and refinement land.
+    import cv2
+
+    camera = LENSES["fisheye150"]
+    rng = np.random.default_rng(4)
+    views = observe(camera, random_poses(camera, 70, rng, region=(0.1, 0.9), distance_m=(0.3, 0.5), tilt_deg=35,
+                                         max_off_axis_deg=70), rng)
+    cold = solve(views, camera.image_size, "fisheye")
+    calls: list[int] = []
+    real_calibrate = cv2.fisheye.calibrate
+    monkeypatch.setattr(cv2.fisheye, "calibrate", lambda *a, **kw: calls.append(1) or real_calibrate(*a, **kw))
+    warm = solve(views[:-5], camera.image_size, "fisheye", initial=cold.camera)  # a few views fewer: a robust round
+    assert calls == []
+    again = solve(views[:-5], camera.image_size, "fisheye")
+    assert calls  # no start given: OpenCV searches the basin
+    assert projection_difference(again.camera, warm.camera, grid=(32, 18)).rms_px < 1e-4
+    assert warm.rms_px == pytest.approx(again.rms_px, rel=1e-6)
