@@ -140,7 +140,7 @@ class SessionFinish:
                 # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
                 # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational
                 # lens was solved as a fisheye 0.7 px off on 2 of 5 renders; on all 400 the halves share poses.
-                choice = choose_model(choice_views, self.image_size, on_likely=start)
+                choice = choose_model(choice_views, self.image_size, on_likely=start, warm=self.camera)
             else:
                 choice = ModelChoice(self.settings.model, {}, f"{self.settings.model} model requested with --model")
             stage("robust solve")

@@ -126,3 +126,23 @@ def test_too_few_views_take_the_model_from_the_field_of_view(lens: str, chosen: 
 @pytest.mark.parametrize("lens", list(CASES))
 def test_estimated_field_of_view(lens: str) -> None:
     assert estimate_hfov_deg(views_of(lens, 4, n=10), SIZE) == pytest.approx(CASES[lens][3], abs=4.0)
+
+
+def test_a_fisheye_warm_start_chooses_as_a_cold_one_without_opencvs_basin_search(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The final solve hands the session's fisheye lens to the model choice: its fisheye solves start
+    # there (no cv2.fisheye.calibrate) and score as the cold ones do; the other models start cold.
+    import cv2
+
+    from calibcoach.app.solve.calibrate import solve
+
+    views = views_of("fisheye150", 5, n=24)
+    cold = choose_model(views, SIZE)
+    warm_lens = solve(views, SIZE, "fisheye").camera
+    calls: list[int] = []
+    real_calibrate = cv2.fisheye.calibrate
+    monkeypatch.setattr(cv2.fisheye, "calibrate", lambda *a, **kw: calls.append(1) or real_calibrate(*a, **kw))
+    warm = choose_model(views, SIZE, warm=warm_lens)
+    assert calls == [] and warm.chosen == cold.chosen == "fisheye"
+    assert warm.candidates.keys() == cold.candidates.keys()
+    for model, score in cold.candidates.items():
+        assert warm.candidates[model] == pytest.approx(score, rel=1e-4)

@@ -27,7 +27,7 @@ def stand_in(monkeypatch, scores: dict[str, float], *, hfov: float = 100.0, fail
     Returns the log of (model, solved-on frame indices, scored-on frame indices)."""
     log = []
 
-    def solve_half(views, image_size, model):
+    def solve_half(views, image_size, model, warm=None):
         if model in failing:
             raise CalibrationError("stand-in failure")
         return (model, tuple(v.frame_index for v in views))
@@ -37,7 +37,7 @@ def stand_in(monkeypatch, scores: dict[str, float], *, hfov: float = 100.0, fail
         log.append((model, solved_on, tuple(v.frame_index for v in views)))
         return scores[model]
 
-    monkeypatch.setattr(mc, "estimate_hfov_deg", lambda views, size: hfov)
+    monkeypatch.setattr(mc, "estimate_hfov_deg", lambda views, size, warm=None: hfov)
     monkeypatch.setattr(mc, "_solve_half", solve_half)
     monkeypatch.setattr(mc, "held_out_rms", held_out)
     return log

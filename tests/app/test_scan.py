@@ -241,8 +241,9 @@ def test_a_final_solve_started_on_a_model_not_chosen_is_discarded(
     monkeypatch.setattr(session_finish, "robust_calibrate", logged_robust)
     results = {}
     for told in (None, "rational"):
-        def choose(views, image_size, *, on_likely=None, told=told):
-            return real_choose(views, image_size, on_likely=on_likely if told is None else (lambda _m: on_likely(told)))
+        def choose(views, image_size, *, on_likely=None, warm=None, told=told):
+            return real_choose(views, image_size, on_likely=on_likely if told is None else (lambda _m: on_likely(told)),
+                               warm=warm)
 
         monkeypatch.setattr(session_finish, "choose_model", choose)
         session, _stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
