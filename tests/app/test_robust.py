@@ -428,14 +428,19 @@ def test_a_fisheye_view_whose_pose_cannot_be_initialised_is_left_out_not_fatal()
     assert projection_difference(without.camera, calibration.camera, grid=(32, 18)).rms_px < 1e-3
 
 
+def _fisheye_views(n: int, *, seed: int) -> tuple[CameraModel, list[View]]:
+    """`n` views of the board through the 150 deg fisheye, 0.2 px corner noise."""
+    camera = LENSES["fisheye150"]
+    rng = np.random.default_rng(seed)
+    return camera, observe(camera, random_poses(camera, n, rng, region=(0.1, 0.9), distance_m=(0.3, 0.5), tilt_deg=35,
+                                                max_off_axis_deg=70), rng)
+
+
 def test_a_fisheye_warm_start_that_converges_never_pays_for_the_pinhole_seed(monkeypatch: pytest.MonkeyPatch) -> None:
     # The pinhole solve that seeds a narrow lens is built only when the caller's guess does not converge.
     from calibcoach.app.solve import calibrate as C
 
-    camera = LENSES["fisheye150"]
-    rng = np.random.default_rng(3)
-    views = observe(camera, random_poses(camera, 12, rng, region=(0.1, 0.9), distance_m=(0.3, 0.5), tilt_deg=35,
-                                         max_off_axis_deg=70), rng)
+    camera, views = _fisheye_views(12, seed=3)
     models: list[str] = []
     real_solve = C.solve
     monkeypatch.setattr(C, "solve", lambda views, size, model, **kw: models.append(model) or real_solve(views, size, model, **kw))
@@ -452,10 +457,7 @@ def test_a_fisheye_warm_start_in_its_basin_is_refined_without_opencvs_basin_sear
     # they land where a cold start's basin search and refinement land.
     import cv2
 
-    camera = LENSES["fisheye150"]
-    rng = np.random.default_rng(4)
-    views = observe(camera, random_poses(camera, 70, rng, region=(0.1, 0.9), distance_m=(0.3, 0.5), tilt_deg=35,
-                                         max_off_axis_deg=70), rng)
+    camera, views = _fisheye_views(70, seed=4)
     cold = solve(views, camera.image_size, "fisheye")
     calls: list[int] = []
     real_calibrate = cv2.fisheye.calibrate
