@@ -37,6 +37,8 @@ static int NAME(unsigned char filter, const unsigned char *restrict f, const uns
     unsigned char left[BPP] = {0}, upleft[BPP] = {0};                                              \
     Py_ssize_t x;                                                                                  \
     int k;                                                                                         \
+    if (up == NULL && (filter == 2 || filter == 4)) /* first row, b = c = 0: Up adds nothing, */   \
+        filter = filter == 2 ? 0 : 1;                /* Paeth picks a, i.e. Sub */                 \
     switch (filter) {                                                                              \
     case 0:                                                                                        \
         for (x = 0; x < stride; x += BPP)                                                          \
@@ -48,8 +50,7 @@ static int NAME(unsigned char filter, const unsigned char *restrict f, const uns
         return 0;                                                                                  \
     case 2:                                                                                        \
         for (x = 0; x < stride; x += BPP)                                                          \
-            for (k = 0; k < BPP; k++)                                                              \
-                cur[x + AT(k)] = (unsigned char)(f[x + k] + (up ? up[x + AT(k)] : 0));             \
+            for (k = 0; k < BPP; k++) cur[x + AT(k)] = (unsigned char)(f[x + k] + up[x + AT(k)]);   \
         return 0;                                                                                  \
     case 3:                                                                                        \
         for (x = 0; x < stride; x += BPP)                                                          \
@@ -58,11 +59,6 @@ static int NAME(unsigned char filter, const unsigned char *restrict f, const uns
                     (unsigned char)(f[x + k] + ((left[k] + (up ? up[x + AT(k)] : 0)) >> 1));       \
         return 0;                                                                                  \
     case 4:                                                                                        \
-        if (up == NULL) { /* above the first row b = c = 0: Paeth picks a, i.e. Sub */            \
-            for (x = 0; x < stride; x += BPP)                                                      \
-                for (k = 0; k < BPP; k++) cur[x + AT(k)] = left[k] = (unsigned char)(f[x + k] + left[k]); \
-            return 0;                                                                              \
-        }                                                                                          \
         for (x = 0; x < stride; x += BPP)                                                          \
             for (k = 0; k < BPP; k++) {                                                            \
                 unsigned char b = up[x + AT(k)];                                                   \
