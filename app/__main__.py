@@ -1,3 +1,3 @@
-from calibcoach.app.cli import main
+from calibcoach.app.cli import run
 
-raise SystemExit(main())
+run()

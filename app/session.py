@@ -26,6 +26,7 @@ from calibcoach.app.session_finish import (
 from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings
 from calibcoach.app.session_types import SessionResult as SessionResult  # re-exported: what finish() returns
 from calibcoach.app.solve.calibrate import poses_for_views, solve
+from calibcoach.app.solve.model_choice import pinhole_sees_narrow_lens
 from calibcoach.app.solve.next_view import RankedPose, error_cut, rank_poses
 from calibcoach.app.solve.result import UncertaintyMap, View
 from calibcoach.app.solve.robust import noise_sigma_px
@@ -289,13 +290,18 @@ class CalibrationSession(SessionFinish):
             # sends the person to ranges where the board is too small to read. Either its field of
             # view says so, or the reduced fisheye fits the same frames clearly better (on a 150 deg
             # lens the reduced pinhole was seen to miss by 50 px of expected error and stall the capture).
+            # The check's fisheye solve is skipped where the pinhole already fits a narrow lens (the
+            # model choice's rule): it costs 5-8x the reduced pinhole (~40 ms at 6-11 views, OpenCV
+            # re-poses every view each iteration), and on such a lens it came out no better.
+            hfov = raw.camera.field_of_view_deg()[0]
             fisheye = None
-            if reduced:  # decided while the data is thin; later solves start from the working model
+            # decided while the data is thin; later solves start from the working model
+            if reduced and not pinhole_sees_narrow_lens(raw.rms_px, hfov):
                 try:
                     fisheye = solve(self.views, self.image_size, "fisheye", reduced=True)
                 except CalibrationError:
                     pass
-            wide = raw.camera.field_of_view_deg()[0] > 110.0
+            wide = hfov > 110.0
             if wide or (fisheye is not None and fisheye.rms_px < _FISHEYE_FITS_BETTER * raw.rms_px):
                 self.working_model = "fisheye"
                 if fisheye is not None:  # the check's solve is this very solve (same views, reduced)

@@ -9,6 +9,7 @@ up front.
 
 from __future__ import annotations
 
+import os
 import pickle
 import signal
 import sys
@@ -55,3 +56,7 @@ def main(out_dir: Path) -> None:
 
 if __name__ == "__main__":
     main(Path(sys.argv[1]))
+    # session.rrd is flushed and closed: leave without tearing down rerun and NumPy (~0.09 s the
+    # replay would wait for before it can exit itself)
+    sys.stderr.flush()
+    os._exit(0)

@@ -147,3 +147,24 @@ def test_explicit_board_options_override_a_recordings_board_with_a_notice(record
     assert "overridden by the command line: square_mm 30.01 -> 30.2, marker_mm 22.01 -> 22.15" in err
     assert "squares 30.2 mm, markers 22.15 mm" in err  # the banner says what is used
     assert json.loads((tmp_path / "o" / "calibration.json").read_text())["board"]["square_mm"] == 30.2
+
+
+@pytest.mark.parametrize("busy_thread", [False, True])
+def test_the_command_leaves_without_teardown_unless_something_still_runs(tmp_path: Path, busy_thread: bool) -> None:
+    # `calibcoach` (cli.run) ends the process as soon as main() returns -- output flushed, files
+    # closed -- skipping the interpreter's teardown; a thread still running gets the normal exit.
+    import subprocess
+    import sys
+
+    script = (
+        "import atexit, sys, threading, time\n"
+        "atexit.register(lambda: print('teardown ran'))\n"
+        f"if {busy_thread}: threading.Thread(target=time.sleep, args=(1.0,)).start()\n"
+        "from calibcoach.app.cli import run\n"
+        f"sys.argv = ['calibcoach', 'board', '--out', {str(tmp_path / 'board.svg')!r}]\n"
+        "run()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "wrote " in done.stdout and (tmp_path / "board.svg").stat().st_size > 0
+    assert ("teardown ran" in done.stdout) == busy_thread

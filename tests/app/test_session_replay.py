@@ -120,3 +120,31 @@ def test_a_full_frame_budget_ends_the_replay_early(recordings_dir: Path) -> None
     full, full_stats = run_replay(open_source(recordings_dir / "demo_webcam720_careful"), board,
                                   replace(lenient, stop_when_done=False))
     assert not full_stats.stopped_early and full_stats.frames_read == 120
+
+
+@pytest.mark.parametrize(("recording", "working_model", "fisheye_checks"),
+                         [("demo_webcam720_careful", "pinhole", 0), ("fisheye150_careful", "fisheye", 1)])
+def test_the_working_model_check_solves_a_fisheye_only_where_the_pinhole_does_not_fit_a_narrow_lens(
+        recordings_dir: Path, monkeypatch: pytest.MonkeyPatch, recording: str, working_model: str, fisheye_checks: int) -> None:
+    # While the data is thin each accept re-decides the working model; its fisheye solve (5-8x a
+    # reduced pinhole's cost) is skipped on a lens the pinhole fits within a pixel at under 80 deg.
+    import calibcoach.app.session as session_module
+
+    real_solve = session_module.solve
+    reduced_solves: list[tuple[str, float, float]] = []
+
+    def counting(views, image_size, model, **kwargs):
+        raw = real_solve(views, image_size, model, **kwargs)
+        if kwargs.get("reduced"):
+            reduced_solves.append((model, raw.rms_px, raw.camera.field_of_view_deg()[0]))
+        return raw
+
+    monkeypatch.setattr(session_module, "solve", counting)
+    source = open_source(recordings_dir / recording)
+    session, _stats = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings(), in_child=False)
+    assert session.working_model == working_model
+    pinholes = [(rms, fov) for model, rms, fov in reduced_solves if model == "pinhole"]
+    assert pinholes and sum(model == "fisheye" for model, _, _ in reduced_solves) >= fisheye_checks
+    if working_model == "pinhole":
+        assert all(rms < 1.0 and fov < 80.0 for rms, fov in pinholes)
+        assert not any(model == "fisheye" for model, _, _ in reduced_solves)
