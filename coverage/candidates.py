@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_views
-from calibcoach.drivers.geometry import pose_facing_pixel, pose_matrix
+from calibcoach.drivers.geometry import pose_matrix, poses_facing_pixel
 from calibcoach.drivers.lens import CameraModel
 
 POSITIONS_X = (0.1, 0.3, 0.5, 0.7, 0.9)  # board centre, share of the image width
@@ -94,12 +94,14 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
     for k, (centre, ray) in enumerate(zip(centres, rays, strict=True)):
         ix, iy = k % len(POSITIONS_X), k // len(POSITIONS_X)
         for it, (tx, ty) in enumerate(TILTS_DEG):
-            for name in RANGE_NAMES:
-                rng = ranges.of(name)
-                rvec, tvec = pose_facing_pixel(ray, board.centre_m, rng, tilt_x_deg=tx, tilt_y_deg=ty)
-                if np.min((board.outline_m @ pose_matrix(rvec).T + tvec)[:, 2]) < MIN_RANGE_M:
+            # one orientation for the three ranges: a rebuild of the 720p lens's grid 64 -> 51 ms, same poses
+            rvec, tvecs = poses_facing_pixel(ray, board.centre_m, [ranges.of(name) for name in RANGE_NAMES],
+                                             tilt_x_deg=tx, tilt_y_deg=ty)
+            outline_turned = board.outline_m @ pose_matrix(rvec).T
+            for name, tvec in zip(RANGE_NAMES, tvecs, strict=True):
+                if np.min((outline_turned + tvec)[:, 2]) < MIN_RANGE_M:
                     continue
-                placed.append(((ix, iy, it, name), centre, rng, name, tx, ty, rvec, tvec))
+                placed.append(((ix, iy, it, name), centre, ranges.of(name), name, tx, ty, rvec.copy(), tvec))
     views = virtual_views(camera, board, [(p[6], p[7]) for p in placed])
     return [CandidatePose(key, (float(centre[0]), float(centre[1])), float(rng), name, float(tx), float(ty), view)
             for (key, centre, rng, name, tx, ty, _r, _t), view in zip(placed, views, strict=True)

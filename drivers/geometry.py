@@ -7,6 +7,8 @@ piece of code: a test that says "the careful path reaches 45 deg" and a coverage
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 
@@ -70,7 +72,23 @@ def pose_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distance_m: f
 
     Returns (rvec (3,), tvec (3,) metres); the board is oriented by `facing_orientation`.
     """
+    rvec, (t,) = poses_facing_pixel(ray, centre_board_m, [distance_m], tilt_x_deg=tilt_x_deg, tilt_y_deg=tilt_y_deg,
+                                    roll_deg=roll_deg)
+    return rvec, t
+
+
+def poses_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distances_m: Sequence[float], *,
+                       tilt_x_deg: float = 0.0, tilt_y_deg: float = 0.0,
+                       roll_deg: float = 0.0) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`pose_facing_pixel` at several distances along one ray: (rvec (3,), one tvec (3,) per distance).
+
+    The orientation does not depend on the distance, so it is built once (the candidate grid asks
+    for three ranges of every position and tilt; each tvec is the same number as one by one).
+    """
     R = facing_orientation(ray, tilt_x_deg, tilt_y_deg, roll_deg)
-    t = distance_m * np.asarray(ray, np.float64) / np.linalg.norm(ray) - R @ np.asarray(centre_board_m, np.float64)
+    direction = np.asarray(ray, np.float64)
+    norm = np.linalg.norm(ray)
+    offset = R @ np.asarray(centre_board_m, np.float64)
+    tvecs = [distance_m * direction / norm - offset for distance_m in distances_m]
     rvec, _ = cv2.Rodrigues(R)
-    return rvec.reshape(3), t
+    return rvec.reshape(3), tvecs

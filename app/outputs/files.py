@@ -388,13 +388,14 @@ def _jsonable(value: Any, digits: int, exact: frozenset[str], *, keep: bool) -> 
 
 
 def _dump(value: Any, depth: int) -> str:
-    inline = json.dumps(value, ensure_ascii=False)
     flat = not isinstance(value, dict | list) or all(
         not isinstance(v, dict | list) or (isinstance(v, list) and all(not isinstance(x, dict | list) for x in v))
         for v in (value.values() if isinstance(value, dict) else value)
     )
-    if flat and (not isinstance(value, dict) or len(inline) + 2 * depth <= 150):
-        return inline
+    if flat:  # encoded whole only here: encoding every level whole first costs the file's depth times over
+        inline = json.dumps(value, ensure_ascii=False)
+        if not isinstance(value, dict) or len(inline) + 2 * depth <= 150:
+            return inline
     pad, inner = "  " * depth, "  " * (depth + 1)
     if isinstance(value, dict):
         body = ",\n".join(f"{inner}{json.dumps(k, ensure_ascii=False)}: {_dump(v, depth + 1)}" for k, v in value.items())

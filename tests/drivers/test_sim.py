@@ -347,3 +347,17 @@ def test_low_light_doubles_the_exposure_up_to_the_frame_interval() -> None:
     # 2 x 30 ms would outlast a 30 fps frame: a camera cannot expose longer than it takes to deliver a frame
     assert SimulatedCamera(camera, SPEC, poses, exposure_s=0.03, low_light=True).exposure_s == pytest.approx(1 / 30, rel=1e-6)
     assert SimulatedCamera(camera, SPEC, poses, exposure_s=0.03).exposure_s == pytest.approx(0.03)
+
+
+def test_poses_at_several_distances_are_each_the_single_pose_and_face_the_ray() -> None:
+    # The candidate grid builds one orientation for its three ranges: each pose must be the very
+    # number `pose_facing_pixel` gives alone (same candidates, same guidance), at its distance on the ray.
+    from calibcoach.drivers.geometry import pose_facing_pixel, poses_facing_pixel
+
+    ray, centre = np.array([0.3, -0.2, 1.0]), np.array([0.12, 0.165, 0.0])
+    rvec, tvecs = poses_facing_pixel(ray, centre, [0.4, 0.7, 1.3], tilt_x_deg=35.0, tilt_y_deg=-20.0)
+    for distance, tvec in zip([0.4, 0.7, 1.3], tvecs, strict=True):
+        alone = pose_facing_pixel(ray, centre, distance, tilt_x_deg=35.0, tilt_y_deg=-20.0)
+        assert np.array_equal(alone[0], rvec) and np.array_equal(alone[1], tvec)
+        centre_cam = cv2.Rodrigues(rvec)[0] @ centre + tvec
+        np.testing.assert_allclose(centre_cam, distance * ray / np.linalg.norm(ray), atol=1e-12)
