@@ -12,7 +12,6 @@ loaded on first use, so `import calibcoach.drivers.v4l2` does not pull in OpenCV
 from __future__ import annotations
 
 import importlib
-from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 _EXPORTS = {
@@ -28,15 +27,17 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 
-try:
-    __version__ = version("calibcoach")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0+unknown"
-
 
 def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
         return getattr(importlib.import_module(_EXPORTS[name]), name)
+    if name == "__version__":  # looked up when asked: importlib.metadata costs every command ~20 ms to start
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return version("calibcoach")
+        except PackageNotFoundError:  # running from a source tree that was never installed
+            return "0+unknown"
     raise AttributeError(f"module 'calibcoach' has no attribute {name!r}")
 
 

@@ -27,7 +27,6 @@ import re
 import secrets
 from collections.abc import Iterable, Mapping, Sequence
 from datetime import UTC, datetime
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -340,6 +339,8 @@ def calibration_payload(
 
 
 def _version() -> str:
+    from importlib import metadata  # here, not at the top: ~20 ms every command would pay to start
+
     try:
         return metadata.version("calibcoach")
     except metadata.PackageNotFoundError:

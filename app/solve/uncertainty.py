@@ -58,16 +58,23 @@ def view_jacobian(camera: CameraModel, object_points_m: np.ndarray, rvec: np.nda
     Returns:
         J_intrinsics (2N, P) float64 px per parameter unit and J_pose (2N, 6) float64 (rvec then tvec).
     """
+    _projected, J_intr, J_pose = _projection_and_jacobian(camera, object_points_m, rvec, tvec)
+    return J_intr, J_pose
+
+
+def _projection_and_jacobian(camera: CameraModel, object_points_m: np.ndarray, rvec: np.ndarray,
+                             tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`view_jacobian` with the projected corners (N, 2) OpenCV computed alongside, first."""
     obj = np.ascontiguousarray(object_points_m, np.float64).reshape(-1, 3)
     r, t = np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
     if camera.model == "fisheye":
         # Columns f(2), c(2), k(4), om(3), t(3), alpha(1), as documented; checked against finite
         # differences in tests/app/test_uncertainty.py. alpha (skew) is fixed, so it is dropped.
         K, D = camera.camera_matrix, camera.dist_coeffs
-        _, J = cv2.fisheye.projectPoints(obj.reshape(1, -1, 3), r.reshape(1, 1, 3), t.reshape(1, 1, 3), K, D)
-        return J[:, :8].copy(), J[:, 8:14].copy()
-    _, J = cv2.projectPoints(obj, r, t, camera.camera_matrix, camera.opencv_dist())
-    return J[:, 6 : 6 + len(intrinsic_names(camera.model))].copy(), J[:, :6].copy()
+        projected, J = cv2.fisheye.projectPoints(obj.reshape(1, -1, 3), r.reshape(1, 1, 3), t.reshape(1, 1, 3), K, D)
+        return projected.reshape(-1, 2), J[:, :8].copy(), J[:, 8:14].copy()
+    projected, J = cv2.projectPoints(obj, r, t, camera.camera_matrix, camera.opencv_dist())
+    return projected.reshape(-1, 2), J[:, 6 : 6 + len(intrinsic_names(camera.model))].copy(), J[:, :6].copy()
 
 
 def solve_jacobian(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -129,16 +136,25 @@ def stacked_view_jacobians(camera: CameraModel, views: Sequence[View], rvecs: np
     Raises:
         ValueError: unless there is one pose per view.
     """
+    _projected, J_intr, J_pose = stacked_projections_and_jacobians(camera, views, rvecs, tvecs)
+    return J_intr, J_pose
+
+
+def stacked_projections_and_jacobians(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray,
+                                      tvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`stacked_view_jacobians` with the projected corners in the same padded rows first: (V, R)
+    as x0, y0, x1, y1, ... (zero beyond a view's 2N), what OpenCV computed with the Jacobian."""
     rv, tv = (np.asarray(a, np.float64).reshape(-1, 3) for a in (rvecs, tvecs))
     if len(views) != rv.shape[0] or len(views) != tv.shape[0]:
         raise ValueError(f"expected one pose per view; got {len(views)} views, {rv.shape[0]} rvecs, {tv.shape[0]} tvecs")
     P = len(intrinsic_names(camera.model))
     rows = 2 * max((v.object_points_m.shape[0] for v in views), default=0)
+    projected = np.zeros((len(views), rows))
     J_intr, J_pose = np.zeros((len(views), rows, P)), np.zeros((len(views), rows, 6))
     for k, (v, r, t) in enumerate(zip(views, rv, tv, strict=True)):
-        Ji, Jp = view_jacobian(camera, v.object_points_m, r, t)
-        J_intr[k, : Ji.shape[0]], J_pose[k, : Jp.shape[0]] = Ji, Jp
-    return J_intr, J_pose
+        px, Ji, Jp = _projection_and_jacobian(camera, v.object_points_m, r, t)
+        projected[k, : px.size], J_intr[k, : Ji.shape[0]], J_pose[k, : Jp.shape[0]] = px.reshape(-1), Ji, Jp
+    return projected, J_intr, J_pose
 
 
 def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:

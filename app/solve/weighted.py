@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from calibcoach.app.solve.result import View
-from calibcoach.app.solve.uncertainty import intrinsic_names, stacked_view_jacobians
+from calibcoach.app.solve.uncertainty import intrinsic_names, stacked_projections_and_jacobians
 from calibcoach.drivers.lens import CameraModel
 
 MIN_WEIGHT = 0.1  # a view at 3x the typical corner noise or worse counts a tenth
@@ -48,9 +48,10 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
                     weights: np.ndarray, *, iterations: int = 15) -> tuple[CameraModel, np.ndarray, np.ndarray]:
     """Minimise sum_v w_v |r_v|^2 over intrinsics and poses from a solved start (LM, Schur-reduced).
 
-    Each view's Jacobian comes from OpenCV (`stacked_view_jacobians`); the normal equations of all
-    views are then formed and reduced in batches (views padded to the largest corner count with zero rows),
-    ~3x faster than view by view for a final solve's hundreds of views.
+    Each view's Jacobian comes from OpenCV with its projections, which the residuals take
+    (`stacked_projections_and_jacobians`); the normal equations of all views are then formed and
+    reduced in batches (views padded to the largest corner count with zero rows), ~3x faster than
+    view by view for a final solve's hundreds of views.
 
     Args:
         camera: the start (OpenCV's solution).
@@ -78,12 +79,14 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
 
     lam = 1e-3
     current = cost(camera, rv, tv)
-    res = np.zeros((V, rows))  # each view's residuals, padded as the stacked Jacobians are
+    observed_rows = np.zeros((V, rows))  # each view's corners, padded as the stacked Jacobians are
+    for k, v in enumerate(views):
+        observed_rows[k, : 2 * v.image_points_px.shape[0]] = v.image_points_px.reshape(-1)
     for _ in range(iterations):
         cam = camera_from_vector(camera, p)
-        J_intr, J_pose = stacked_view_jacobians(cam, views, rv, tv)
-        for k, (v, ri, ti) in enumerate(zip(views, rv, tv, strict=True)):
-            res[k, : 2 * v.image_points_px.shape[0]] = (v.image_points_px - cam.project(v.object_points_m, ri, ti)).reshape(-1)
+        # the residuals from the projections OpenCV makes with the Jacobian (one call a view, not two)
+        projected, J_intr, J_pose = stacked_projections_and_jacobians(cam, views, rv, tv)
+        res = observed_rows - projected
         J_intr_w, J_pose_w = J_intr * w[:, None, None], J_pose * w[:, None, None]
         U = J_intr_w.reshape(-1, P).T @ J_intr.reshape(-1, P)
         W = np.swapaxes(J_intr_w, 1, 2) @ J_pose  # (V, P, 6)

@@ -368,3 +368,24 @@ def test_an_ordinary_model_has_no_degenerate_points() -> None:
         gx, gy = U.image_grid(cam.image_size)
         plain = U.projection_jacobian(cam, gx, gy, absorb_rotation=False)
         assert not U.degenerate_points(plain, np.ones((gy.size, gx.size), bool)).any(), cam.model
+
+
+@pytest.mark.parametrize("model", list(LENSES))
+def test_stacked_projections_are_the_views_projections_in_the_jacobians_rows(model: str) -> None:
+    # The weighted refinement takes its residuals from these: each view's corners as the camera
+    # projects them, x then y per corner, zero in the padding rows; the Jacobians are the stack's.
+    camera = LENSES[model]
+    rng = np.random.default_rng(7)
+    poses = random_poses(camera, 5, rng)
+    views = observe(camera, poses, rng, noise_px=0.0)
+    views[1] = View(views[1].frame_index, views[1].frame_name, views[1].ids[:20], views[1].image_points_px[:20],
+                    views[1].object_points_m[:20])  # fewer corners than the rest: padded rows
+    rvecs, tvecs = [r for r, _ in poses], [t for _, t in poses]
+    projected, J_intr, J_pose = U.stacked_projections_and_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
+    J_intr_alone, J_pose_alone = U.stacked_view_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
+    assert np.array_equal(J_intr, J_intr_alone) and np.array_equal(J_pose, J_pose_alone)
+    for k, (v, r, t) in enumerate(zip(views, rvecs, tvecs, strict=True)):
+        n = 2 * v.image_points_px.shape[0]
+        np.testing.assert_allclose(projected[k, :n], camera.project(v.object_points_m, r, t).reshape(-1), atol=1e-9)
+        assert not projected[k, n:].any()
+    assert projected.shape == (5, 2 * max(v.image_points_px.shape[0] for v in views))
