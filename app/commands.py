@@ -151,14 +151,13 @@ def open_replay_viewer(args: argparse.Namespace):
     thread of its own where no child can be started; one shown live logs directly."""
     if args.viewer != "none":
         return open_viewer(args)
+    from calibcoach.app.scan_process import fork_available
     from calibcoach.app.viewer_process import ProcessViewer
     from calibcoach.app.viewer_thread import BackgroundViewer
 
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    try:
+    if fork_available():
         return ProcessViewer(Path(args.out))
-    except OSError:
-        pass
 
     def open_saving_only():
         from calibcoach.app.viewer import Viewer  # imported on the logging thread: rerun takes ~0.8 s to load

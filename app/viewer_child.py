@@ -1,62 +1,44 @@
-"""The child process that writes a replay's session.rrd (app/viewer_process.py sends it the work).
+"""What the forked child of app/viewer_process.py runs: session.rrd written from the frames it was born with.
 
-Its stdin carries messages in order, each a 4-byte big-endian length and a pickled
-(method, args, kwargs) of `Viewer`; an empty message (`START`) says the reading is done. Until
-then messages are only held, not even unpickled: unpickling imports calibcoach's modules and
-rerun, CPU the replay needs. End of input ends the log. Only the standard library is imported
-up front.
+The child starts once the replay has read its source, as a fork of the replay's process: the
+frames to log (each outcome, its frame without pixels, its preview JPEG) are already in its
+memory, and so are NumPy, OpenCV and calibcoach's modules; only rerun is left to import. What
+comes after the fork (the final result) arrives on a pipe, each message a 4-byte big-endian length
+and a pickled (method, args, kwargs) of `Viewer`; end of input ends the log.
 """
 
 from __future__ import annotations
 
-import os
 import pickle
-import signal
-import sys
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
 
-START = (0).to_bytes(4, "big")
+if TYPE_CHECKING:
+    from calibcoach.app.session import FrameOutcome
+    from calibcoach.drivers.base import Frame
 
 
-def _open(out_dir: Path, held: list[bytes]):
-    from calibcoach.app.viewer import Viewer  # rerun: ~0.4 s, now that the replay has read its source
+def log_session(out_dir: Path, frames: Sequence[tuple[FrameOutcome, Frame, bytes | None]], messages: BinaryIO) -> None:
+    """Write out_dir/session.rrd: `frames` first, then each message until the pipe closes."""
+    from calibcoach.app.viewer import Viewer  # rerun: ~0.25 s, beside the replay's final solve
 
     viewer = Viewer.open("none", out_dir=out_dir)
-    for blob in held:
-        _apply(viewer, blob)
-    held.clear()
-    return viewer
+    try:
+        for outcome, frame, jpeg in frames:
+            viewer.log_frame(outcome, frame, jpeg=jpeg)
+        while len(head := messages.read(4)) == 4:
+            size = int.from_bytes(head, "big")
+            blob = messages.read(size)
+            if len(blob) < size:
+                break  # the replay died mid-message: log what came whole
+            method, args, kwargs = pickle.loads(blob)
+            getattr(viewer, method)(*args, **kwargs)
+    finally:
+        viewer.close()
 
 
-def _apply(viewer, blob: bytes) -> None:
-    method, args, kwargs = pickle.loads(blob)
-    getattr(viewer, method)(*args, **kwargs)
-
-
-def main(out_dir: Path) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the replay handles Ctrl-C and then closes this log
-    stream = sys.stdin.buffer
-    held: list[bytes] = []
-    viewer = None
-    while len(head := stream.read(4)) == 4:
-        size = int.from_bytes(head, "big")
-        if size == 0:
-            viewer = viewer or _open(out_dir, held)
-            continue
-        blob = stream.read(size)
-        if len(blob) < size:
-            break  # the replay died mid-message: log what came whole
-        if viewer is None:
-            held.append(blob)
-        else:
-            _apply(viewer, blob)
-    viewer = viewer or _open(out_dir, held)
-    viewer.close()
-
-
-if __name__ == "__main__":
-    main(Path(sys.argv[1]))
-    # session.rrd is flushed and closed: leave without tearing down rerun and NumPy (~0.09 s the
-    # replay would wait for before it can exit itself)
-    sys.stderr.flush()
-    os._exit(0)
+def message(method: str, *args: object, **kwargs: object) -> bytes:
+    """One message for `log_session`: its length, then the pickled (method, args, kwargs)."""
+    blob = pickle.dumps((method, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
+    return len(blob).to_bytes(4, "big") + blob

@@ -1,34 +1,43 @@
-"""Rerun logging in a child process, for replays that save session.rrd and show nothing live.
+"""Rerun logging in a forked child process, for replays that save session.rrd and show nothing live.
 
-A replay's Rerun log costs ~0.4 s to import rerun and ~1 ms of Python per frame. On a thread of
-the replay's own process that Python takes turns at the GIL with the replay's and the final
-solve's, and so adds its whole time to the command (`BackgroundViewer`, app/viewer_thread.py,
-measured 0.3-0.4 s on a 784-frame 720p folder). A child process has a GIL of its own: it buffers
-what it is sent until `start()` (the reading is done), then imports rerun and writes session.rrd
-on the other core while the final solve and the outputs are computed here.
+A replay's Rerun log costs ~0.25 s to import rerun and ~1 ms of Python per logged frame. On a
+thread of the replay's own process that Python takes turns at the GIL with the replay's and the
+final solve's, and so adds its whole time to the command (`BackgroundViewer`,
+app/viewer_thread.py, measured 0.3-0.4 s on a 784-frame 720p folder). A child process has a GIL
+of its own.
 
-What is sent: each frame's outcome with its preview JPEG and the frame without its pixels,
-encoded and pickled on a sending thread here (off the replay's path) and written to the child's
-stdin in order (app/viewer_child.py reads it). The child runs in a session of its own, so the
-Ctrl-C meant for the replay does not cut the log short; `close()` waits for it and raises,
-naming the child's last words, if it failed. Where no child can be started at all,
-`commands.open_replay_viewer` falls back on the logging thread (app/viewer_thread.py).
+While the source is read, each frame's preview JPEG is encoded on a thread here (OpenCV releases
+the GIL) and kept with the outcome and the frame without its pixels (~15 KB a 720p frame). When
+the reading is done (`start()`), the process forks: the child is born holding those frames and
+every module the replay imported (NumPy, OpenCV, calibcoach), so it imports only rerun and writes
+session.rrd (app/viewer_child.py) on the other core while the final solve and the outputs are
+computed here. Against a child started with the replay and sent every frame pickled through a
+pipe, that is ~0.3 s less CPU on a 720p replay (its own interpreter and imports, pickling both
+ways), at a time when both cores are busy. What comes later (the result) goes down a pipe.
+
+The child runs in a session of its own, so the Ctrl-C meant for the replay does not cut the log
+short; its stderr comes back on a pipe, and `close()` waits for it and raises, naming the child's
+last words, if it failed. The fork happens with no other thread of this process running (the
+encoding thread has finished; OpenCV's pool is down to one thread since the scan's own fork, see
+app/scan_process.py). Where fork is not available (`fork_available`), `commands.open_replay_viewer`
+falls back on the logging thread (app/viewer_thread.py).
 """
 
 from __future__ import annotations
 
 import copy
-import pickle
+import os
 import queue
-import subprocess
+import signal
 import sys
 import threading
+import traceback
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from calibcoach.app.preview import frame_for_log
-from calibcoach.app.viewer_child import START
+from calibcoach.app.viewer_child import log_session, message
 from calibcoach.drivers.errors import CalibcoachError
 
 if TYPE_CHECKING:  # rerun is imported in the child only
@@ -36,7 +45,7 @@ if TYPE_CHECKING:  # rerun is imported in the child only
     from calibcoach.drivers.base import Frame
 
 
-_MAX_PENDING = 32  # frames waiting to be encoded and sent (~30 MB at 720p) before the replay waits
+_MAX_PENDING = 32  # frames waiting to be encoded (~30 MB at 720p) before the replay waits
 
 
 class LoggerError(CalibcoachError):
@@ -44,62 +53,94 @@ class LoggerError(CalibcoachError):
 
 
 class ProcessViewer:
-    """The `Viewer` calls a replay makes (log_frame, start, log_result, close), run in a child process."""
+    """The `Viewer` calls a replay makes (log_frame, start, log_result, close), logged by a forked child."""
 
     url: str | None = None  # saving only: nothing to open
     notice: str | None = None
 
     def __init__(self, out_dir: Path) -> None:
-        self._child = subprocess.Popen(
-            [sys.executable, "-m", "calibcoach.app.viewer_child", str(out_dir)],
-            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
-        )
-        self._said: list[bytes] = []  # the child's stderr, read on a thread so that it never blocks writing it
-        self._reader = threading.Thread(target=lambda: self._said.extend(self._child.stderr), daemon=True)  # type: ignore[arg-type]
-        self._reader.start()
+        self._out_dir = Path(out_dir)
+        self._frames: list[tuple[FrameOutcome, Frame, bytes | None]] = []  # what the child is born with
+        self._error: Exception | None = None  # what the encoding thread hit
         self._closed = False
-        self._error: Exception | None = None  # what the sending thread hit
-        # Frames are encoded, pickled and written on a thread of their own, off the replay's path;
-        # the queue bounds the frames held meanwhile (~30 MB at 720p).
-        self._outbox: queue.Queue[tuple[FrameOutcome, Frame] | bytes | None] = queue.Queue(maxsize=_MAX_PENDING)
-        self._writer = threading.Thread(target=self._write_all, name="rerun-send", daemon=True)
-        self._writer.start()
+        self._child: int | None = None  # its pid, once forked
+        self._to_child: int | None = None  # the pipe's writing end
+        self._said: list[bytes] = []  # the child's stderr, read on a thread so that it never blocks writing it
+        self._reader: threading.Thread | None = None
+        # Previews are encoded on a thread of their own, off the replay's path; the queue bounds the
+        # full frames held meanwhile (~30 MB at 720p).
+        self._outbox: queue.Queue[tuple[FrameOutcome, Frame] | None] = queue.Queue(maxsize=_MAX_PENDING)
+        self._encoder = threading.Thread(target=self._encode_all, name="rerun-previews", daemon=True)
+        self._encoder.start()
 
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
-        if outcome.decision.accepted:  # the map is the session's live one: send it as it is now
+        if self._child is not None or self._closed:
+            raise RuntimeError("frames are logged before start()")
+        if outcome.decision.accepted:  # the map is the session's live one: keep it as it is now
             outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
-        self._put((outcome, frame))
+        self._outbox.put((outcome, frame))
 
-    def _put(self, item: tuple[FrameOutcome, Frame] | bytes | None) -> None:
-        if self._closed:
-            raise RuntimeError("the viewer is closed")
-        self._outbox.put(item)
-
-    def _write_all(self) -> None:
+    def _encode_all(self) -> None:
         while (item := self._outbox.get()) is not None:
             if self._error is not None:
                 continue  # keep taking, so the replay never blocks on a full queue; close() reports it
             try:
-                if isinstance(item, bytes):
-                    self._write(item)
-                else:
-                    outcome, frame = item
-                    pixelless, jpeg = frame_for_log(frame)
-                    self._write(_message(("log_frame", (outcome, pixelless), {"jpeg": jpeg})))
-            except Exception as exc:  # noqa: BLE001 - e.g. an outcome that does not pickle: handed to close()
+                outcome, frame = item
+                pixelless, jpeg = frame_for_log(frame)
+                self._frames.append((outcome, pixelless, jpeg))
+            except Exception as exc:  # noqa: BLE001 - handed to close()
                 self._error = exc
 
     def start(self) -> None:
-        """The reading is done: the child imports rerun and writes what it holds."""
-        self._put(START)
+        """The reading is done: fork the child that writes session.rrd (idempotent)."""
+        if self._child is not None or self._closed:
+            return
+        self._outbox.put(None)
+        self._encoder.join()
+        messages_in, to_child = os.pipe()
+        said_in, said_out = os.pipe()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        # Ctrl-C stays pending until the child has left the replay's session (and is ignored there)
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            pid = os.fork()
+        except OSError as exc:  # out of memory or processes: the calibration goes on without session.rrd
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+            for fd in (messages_in, to_child, said_in, said_out):
+                os.close(fd)
+            self._error = self._error or exc
+            self._child, self._frames = -1, []
+            return
+        if pid == 0:  # the child: never returns
+            os.close(to_child)
+            os.close(said_in)
+            _child_main(self._out_dir, self._frames, messages_in, said_out, blocked)
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        os.close(messages_in)
+        os.close(said_out)
+        self._child, self._to_child = pid, to_child
+        self._frames = []  # the child has them
+        self._reader = threading.Thread(target=self._read_said, args=(said_in,), daemon=True)
+        self._reader.start()
+
+    def _read_said(self, fd: int) -> None:
+        with os.fdopen(fd, "rb") as said:
+            self._said.extend(said)
 
     def log_result(self, result: SessionResult, out_dir: Path) -> None:
-        self._put(_message(("log_result", (result, out_dir), {})))
+        self._send(message("log_result", result, out_dir))
 
-    def _write(self, data: bytes) -> None:
+    def _send(self, data: bytes) -> None:
+        if self._closed:
+            raise RuntimeError("the viewer is closed")
+        self.start()
+        if self._to_child is None:
+            return  # no child could be started: close() says so
+        view = memoryview(data)
         try:
-            self._child.stdin.write(data)  # type: ignore[union-attr]
-            self._child.stdin.flush()  # type: ignore[union-attr]
+            while view:
+                view = view[os.write(self._to_child, view):]
         except OSError:  # BrokenPipeError among them
             pass  # the child has died: close() says why
 
@@ -107,16 +148,14 @@ class ProcessViewer:
         """Wait until session.rrd is complete; raise LoggerError, with the child's reason, if it failed."""
         if self._closed:
             return
-        self._outbox.put(None)
+        self.start()
         self._closed = True
-        self._writer.join()
-        try:
-            self._child.stdin.close()  # type: ignore[union-attr]
-        except OSError:
-            pass
-        code = self._child.wait()
-        self._reader.join(timeout=5.0)
-        self._child.stderr.close()  # type: ignore[union-attr]
+        code = 0
+        if self._to_child is not None:
+            os.close(self._to_child)
+            _pid, status = os.waitpid(self._child, 0)  # type: ignore[arg-type]
+            code = os.waitstatus_to_exitcode(status)
+            self._reader.join(timeout=5.0)  # type: ignore[union-attr]
         if self._error is not None:
             raise LoggerError(f"writing session.rrd failed ({type(self._error).__name__}: {self._error}); "
                               "the calibration files are unaffected") from self._error
@@ -132,7 +171,27 @@ class ProcessViewer:
         self.close()
 
 
-def _message(item: tuple[str, tuple, dict]) -> bytes:
-    """One message for app/viewer_child.py: its length, then the pickled (method, args, kwargs)."""
-    blob = pickle.dumps(item, protocol=pickle.HIGHEST_PROTOCOL)
-    return len(blob).to_bytes(4, "big") + blob
+def _child_main(out_dir: Path, frames: list, messages_fd: int, said_fd: int, signal_mask: set) -> None:
+    """The forked child: its own session (Ctrl-C is the replay's to handle), stderr to the parent, log, exit."""
+    code = 1
+    try:
+        os.setsid()
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.pthread_sigmask(signal.SIG_SETMASK, signal_mask)
+        os.dup2(said_fd, 2)
+        os.close(said_fd)
+        quiet = os.open(os.devnull, os.O_RDWR)  # nothing of the child's on the replay's stdout, nothing read from its stdin
+        os.dup2(quiet, 0)
+        os.dup2(quiet, 1)
+        os.close(quiet)
+        with os.fdopen(messages_fd, "rb") as messages:
+            log_session(out_dir, frames, messages)
+        code = 0
+    except BaseException:  # noqa: BLE001 - every failure ends here, told on stderr
+        traceback.print_exc()
+    finally:
+        try:
+            sys.stderr.flush()
+        finally:
+            # session.rrd is closed: leave without the interpreter's teardown (or the parent's atexit handlers)
+            os._exit(code)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -57,3 +58,31 @@ def test_a_logging_child_that_fails_is_reported_and_never_blocks_the_replay(tmp_
     with pytest.raises(LoggerError, match="session.rrd"):
         viewer.close()
     viewer.close()  # idempotent once closed
+
+
+def test_the_logging_child_runs_in_a_session_of_its_own_deaf_to_ctrl_c(tmp_path: Path) -> None:
+    # Ctrl-C reaches the replay's whole process group; the child writing session.rrd must not die
+    # of it mid-file (the replay goes on to solve with what it kept, and closes the log after).
+    import os
+    import signal
+
+    from calibcoach.app.viewer_process import ProcessViewer
+
+    viewer = ProcessViewer(tmp_path)
+    viewer.start()  # forks: the child logs what it holds, then waits for the result on its pipe
+    child = viewer._child
+    assert child is not None and child > 0
+
+    def sigint_ignored() -> bool:
+        status = Path(f"/proc/{child}/status").read_text().splitlines()
+        return bool(int(next(line for line in status if line.startswith("SigIgn:")).split()[1], 16) & (1 << (signal.SIGINT - 1)))
+
+    deadline = time.monotonic() + 10.0  # the child sets itself up right after the fork
+    while not (os.getsid(child) == child and sigint_ignored()) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert os.getsid(child) == child != os.getsid(0)
+    assert sigint_ignored()
+    viewer.close()
+    verify = subprocess.run([str(Path(sys.executable).with_name("rerun")), "rrd", "verify", str(tmp_path / "session.rrd")],
+                            capture_output=True, text=True)
+    assert verify.returncode == 0, verify.stderr
