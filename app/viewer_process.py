@@ -17,9 +17,10 @@ ways), at a time when both cores are busy. What comes later (the result) goes do
 
 The child runs in a session of its own, so the Ctrl-C meant for the replay does not cut the log
 short; its stderr comes back on a pipe, and `close()` waits for it and raises, naming the child's
-last words, if it failed. The fork happens with no other thread of this process running (the
-encoding thread has finished; OpenCV's pool is down to one thread since the scan's own fork, see
-app/scan_process.py). Where fork is not available (`fork_available`), `commands.open_replay_viewer`
+last words, if it failed. None of this module's threads runs across the fork (the encoding
+thread has finished; the stderr reader starts after), and OpenCV's pool is down to one thread
+since the scan's own fork (app/scan_process.py), so the child never waits on a lock or a pool
+thread it was not born with. Where fork is not available (`fork_available`), `commands.open_replay_viewer`
 falls back on the logging thread (app/viewer_thread.py).
 """
 
@@ -75,7 +76,7 @@ class ProcessViewer:
 
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         if self._child is not None or self._closed:
-            raise RuntimeError("frames are logged before start()")
+            raise RuntimeError("log_frame after start(): the child writing session.rrd was born with the frames before it")
         if outcome.decision.accepted:  # the map is the session's live one: keep it as it is now
             outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
         self._outbox.put((outcome, frame))
