@@ -1,8 +1,8 @@
 """Replay speed: `calibcoach calibrate` on a folder versus the plain loop, measured in one run.
 
 The plain loop is what a user would write with OpenCV alone: imread + detectBoard on every frame,
-then one calibrateCamera over every frame with >= 6 corners. Both run in this process, one after
-the other, on the same files (the page cache is warmed first, so neither pays for the disk).
+then one calibrateCamera over every frame with >= 6 corners. Both run in this process, taking
+turns run by run, on the same files (the page cache is warmed first, so neither pays for the disk).
 
     .venv/bin/python bench/replay_speed.py [FOLDER] [--runs 3] [--style careful|sloppy]
 
@@ -98,16 +98,21 @@ def main() -> int:
     files = [args.folder] if video else sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     for f in files:  # warm the page cache for both
         f.read_bytes()
-    plain = [plain_loop(args.folder if video else files, BoardSpec()) for _ in range(args.runs)]
-    ours = [calibcoach_run(args.folder) for _ in range(args.runs)]
+    # The two alternate, so that the machine's own drift (~15% over a day on a shared host) falls on
+    # both alike; each pair gives a ratio, and the spread of those says how far one run can be trusted.
+    plain, ours = [], []
+    for _ in range(args.runs):
+        plain.append(plain_loop(args.folder if video else files, BoardSpec()))
+        ours.append(calibcoach_run(args.folder))
     p, o = float(np.median([t for t, _ in plain])), float(np.median([t for t, _ in ours]))
+    pairs = [t_ours / t_plain for (t_plain, _), (t_ours, _) in zip(plain, ours, strict=True)]
     read = "VideoCapture.read" if video else "imread"
     print(f"plain loop ({read} + detectBoard on every frame + calibrateCamera on {plain[0][1]}): {p:.2f} s")
     print(f"calibcoach calibrate (whole command, start-up included):          {o:.2f} s")
     print(f"  {ours[0][1]}")
     if not video:
         print(f"  PNG rows of {files[0].name}: {png_filters(files[0])} (how they were filtered decides the decoding cost, README)")
-    print(f"ratio calibcoach / plain: {o / p:.2f}")
+    print(f"ratio calibcoach / plain: {o / p:.2f} (run by run: {', '.join(f'{r:.2f}' for r in pairs)})")
     return 0
 
 
