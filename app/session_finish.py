@@ -274,7 +274,8 @@ class SessionFinish:
 
     def _not_enough_views_error(self) -> CalibrationError:
         counts = {k: v for k, v in self.selector.counts.items() if v and k != "accepted"}
-        breakdown = ", ".join(f"{v} {k}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or "no frames at all"
+        breakdown = ", ".join(f"{v} {k}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or (
+            "none rejected: the source held too few frames" if self.frames_seen else "no frames at all")
         if self.frames_seen and counts.get("no board", 0) == self.frames_seen:
             mismatch = diagnose_board_mismatch(self.board, self._samples)
             if mismatch is not None:

@@ -27,7 +27,11 @@ def inputs(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequ
     refused = root / "refused"
     assert main(["calibrate", str(request.config.rootpath / "recordings" / "frontal_webcam720"), "--out", str(refused),
                  "--quiet"]) == 3
-    return {"noise": noise, "toml": toml, "refused": refused / "calibration.json",
+    one = root / "one"  # a single good frame: kept, nothing rejected, still too few to solve
+    one.mkdir()
+    frames = sorted((request.config.rootpath / "recordings" / "demo_webcam720_careful" / "frames").iterdir())
+    (one / frames[0].name).write_bytes(frames[0].read_bytes())
+    return {"noise": noise, "toml": toml, "refused": refused / "calibration.json", "one": one,
             "demo": request.config.rootpath / "recordings" / "demo_webcam720_careful"}
 
 
@@ -41,6 +45,7 @@ CASES = [
     ("calibrate {demo} --dictionary DICT_7X7_9", "unknown ArUco dictionary"),
     ("calibrate {tmp}/nowhere", "does not exist"),
     ("calibrate {noise}", "no ArUco markers"),
+    ("calibrate {one}", "only 1 of 1 frames were usable (none rejected: the source held too few frames)"),
     ("scale {refused} --to 640x360", "--accept-partial"),
     ("scale {refused} --crop 0,0,5000,5000 --accept-partial", "crop inside the image"),
     ("scale {tmp}/nothing.json --to 640x360", "does not exist"),
