@@ -90,18 +90,18 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
     w, h = camera.image_size
     centres = np.array([[fx * w, fy * h] for fy in POSITIONS_Y for fx in POSITIONS_X])
     rays = camera.unproject(centres)
+    distances = [ranges.of(name) for name in RANGE_NAMES]
     placed = []  # (key, centre, range, name, tilt_x, tilt_y, rvec, tvec) of the poses that keep clear of the lens
     for k, (centre, ray) in enumerate(zip(centres, rays, strict=True)):
         ix, iy = k % len(POSITIONS_X), k // len(POSITIONS_X)
         for it, (tx, ty) in enumerate(TILTS_DEG):
             # one orientation for the three ranges: a rebuild of the 720p lens's grid 64 -> 51 ms, same poses
-            rvec, tvecs = poses_facing_pixel(ray, board.centre_m, [ranges.of(name) for name in RANGE_NAMES],
-                                             tilt_x_deg=tx, tilt_y_deg=ty)
+            rvec, tvecs = poses_facing_pixel(ray, board.centre_m, distances, tilt_x_deg=tx, tilt_y_deg=ty)
             outline_turned = board.outline_m @ pose_matrix(rvec).T
-            for name, tvec in zip(RANGE_NAMES, tvecs, strict=True):
+            for name, rng, tvec in zip(RANGE_NAMES, distances, tvecs, strict=True):
                 if np.min((outline_turned + tvec)[:, 2]) < MIN_RANGE_M:
                     continue
-                placed.append(((ix, iy, it, name), centre, ranges.of(name), name, tx, ty, rvec.copy(), tvec))
+                placed.append(((ix, iy, it, name), centre, rng, name, tx, ty, rvec.copy(), tvec))
     views = virtual_views(camera, board, [(p[6], p[7]) for p in placed])
     return [CandidatePose(key, (float(centre[0]), float(centre[1])), float(rng), name, float(tx), float(ty), view)
             for (key, centre, rng, name, tx, ty, _r, _t), view in zip(placed, views, strict=True)
