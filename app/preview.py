@@ -7,12 +7,17 @@ while the Rerun logger, on a thread of its own, imports rerun only once the read
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from calibcoach.drivers.base import Frame
+
+if TYPE_CHECKING:
+    from calibcoach.app.session_types import FrameOutcome
 
 PREVIEW_MAX_WIDTH = 960  # px: enough to judge focus and corners, small enough for ~30 fps over the wire
 JPEG_QUALITY = 75
@@ -42,3 +47,9 @@ def frame_for_log(frame: Frame) -> tuple[Frame, bytes | None]:
     w, h = frame.image_size
     pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8), controls=dict(frame.controls))
     return pixelless, preview_jpeg(frame.image)
+
+
+def outcome_for_log(outcome: FrameOutcome) -> FrameOutcome:
+    """The outcome as a deferred logger holds it: an accepted frame's coverage map is the session's
+    live one, which the next accept changes, so it is copied as it is now."""
+    return replace(outcome, coverage=copy.deepcopy(outcome.coverage)) if outcome.decision.accepted else outcome

@@ -26,18 +26,16 @@ falls back on the logging thread (app/viewer_thread.py).
 
 from __future__ import annotations
 
-import copy
 import os
 import queue
 import signal
 import sys
 import threading
 import traceback
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from calibcoach.app.preview import frame_for_log
+from calibcoach.app.preview import frame_for_log, outcome_for_log
 from calibcoach.app.viewer_child import log_session, message
 from calibcoach.drivers.errors import CalibcoachError
 
@@ -77,9 +75,7 @@ class ProcessViewer:
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         if self._child is not None or self._closed:
             raise RuntimeError("log_frame after start(): the child writing session.rrd was born with the frames before it")
-        if outcome.decision.accepted:  # the map is the session's live one: keep it as it is now
-            outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
-        self._outbox.put((outcome, frame))
+        self._outbox.put((outcome_for_log(outcome), frame))
 
     def _encode_all(self) -> None:
         while (item := self._outbox.get()) is not None:

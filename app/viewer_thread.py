@@ -16,15 +16,13 @@ own; this thread is the fallback where no child can be started. Live sessions ke
 
 from __future__ import annotations
 
-import copy
 import queue
 import threading
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from calibcoach.app.preview import frame_for_log
+from calibcoach.app.preview import frame_for_log, outcome_for_log
 
 if TYPE_CHECKING:  # the viewer (and rerun) is imported on the logging thread, never here
     from calibcoach.app.session import FrameOutcome, SessionResult
@@ -69,8 +67,7 @@ class BackgroundViewer:
                 viewer.close()
 
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
-        if outcome.decision.accepted:  # the map is the session's live one: log it as it is now
-            outcome = replace(outcome, coverage=copy.deepcopy(outcome.coverage))
+        outcome = outcome_for_log(outcome)
         pixelless, jpeg = frame_for_log(frame)
         self._put(("log_frame", (outcome, pixelless), {"jpeg": jpeg}))
 
