@@ -26,18 +26,15 @@ _EXPORTS = {
     "CalibrationError": "calibcoach.drivers.errors",
 }
 __all__ = sorted(_EXPORTS)
+# The one place the version is written: pyproject.toml reads it from here ([tool.setuptools.dynamic]),
+# and calibration.json takes it from here without importlib.metadata (~50 ms at the end of every
+# calibration: it imports csv, email and zipfile and parses the installed metadata).
+__version__ = "0.1.0"
 
 
 def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
         return getattr(importlib.import_module(_EXPORTS[name]), name)
-    if name == "__version__":  # looked up when asked: importlib.metadata costs every command ~20 ms to start
-        from importlib.metadata import PackageNotFoundError, version
-
-        try:
-            return version("calibcoach")
-        except PackageNotFoundError:  # running from a source tree that was never installed
-            return "0+unknown"
     raise AttributeError(f"module 'calibcoach' has no attribute {name!r}")
 
 

@@ -33,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+import calibcoach
 from calibcoach.app.outputs.camera_reader import load_camera, parse_simple_yaml
 from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict
 from calibcoach.coverage.board import BoardSpec
@@ -334,17 +335,8 @@ def calibration_payload(
         "lens_state": dict(lens_state),
         "command_line": [str(a) for a in command_line],
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "calibcoach_version": _version(),
+        "calibcoach_version": calibcoach.__version__,
     }
-
-
-def _version() -> str:
-    from importlib import metadata  # here, not at the top: ~20 ms every command would pay to start
-
-    try:
-        return metadata.version("calibcoach")
-    except metadata.PackageNotFoundError:
-        return "unknown (not installed)"
 
 
 def write_calibration_json(
