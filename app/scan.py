@@ -46,6 +46,11 @@ from calibcoach.coverage.detector import TRACK_MAX_SHIFT_PX, CharucoBoardDetecto
 from calibcoach.coverage.sharpness import percentile_spread
 from calibcoach.drivers.base import Frame, frames_ahead
 
+try:  # built by `pip install` where a C compiler is present (pyproject ext-modules, optional)
+    from calibcoach.coverage._block_mean import block_means as _block_means
+except ImportError:  # pragma: no cover - no compiler at install: cv2.resize, the same numbers
+    _block_means = None
+
 # Every 5th frame (1/6 s at 30 fps) is detected in full, the rest of a hold tracked. A tracked
 # corner starts from the frame before and OpenCV's refinement stops within 0.1 px of its start, so
 # it inherits part of that frame's error down the chain (consecutive frames' corner errors
@@ -87,6 +92,20 @@ class Seen:
 
 
 def thumbnail(grey: np.ndarray) -> np.ndarray:
+    """(45, 80) float32 cell means of a grey frame: cv2.resize(INTER_AREA)'s numbers, bit for bit.
+
+    Where the frame's sides are whole multiples of the cells' of at least 3 px (720p: 16, 1080p:
+    24, 4K: 48) and the C extension was built, its block means are 5x cheaper (0.05 ms instead of
+    0.23 at 720p, for every frame a replay decodes) and round as OpenCV does; OpenCV's 2x2 case
+    rounds differently, so it and every other size go to cv2.resize.
+    """
+    height, width = grey.shape
+    cell_w, cell_h = width // _THUMB_SIZE[0], height // _THUMB_SIZE[1]
+    if _block_means is not None and cell_w >= 3 and cell_h >= 3 and cell_w * _THUMB_SIZE[0] == width \
+            and cell_h * _THUMB_SIZE[1] == height and grey.dtype == np.uint8 and grey.flags.c_contiguous:
+        means = np.empty(_THUMB_SIZE[::-1], np.float32)
+        _block_means(grey, height, width, cell_h, cell_w, means)
+        return means
     return cv2.resize(grey, _THUMB_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
 
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from calibcoach.app.replay import detected_frames, run_replay
-from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan
+from calibcoach.app import scan
+from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan, thumbnail
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
@@ -45,6 +46,31 @@ def _hold(recordings_dir: Path, view: int, frames: int, seed: int) -> list[np.nd
     grey = _demo_grey(recordings_dir, view)
     walk = np.cumsum(rng.normal(0, 0.3, (frames, 2)), axis=0)
     return [_shifted(grey, dx, dy, rng) for dx, dy in walk]
+
+
+@pytest.mark.parametrize("size", [(1280, 720), (1920, 1080), (640, 360), (160, 90), (640, 480), (1279, 720)])
+def test_thumbnails_are_opencvs_area_resize_bit_for_bit(recordings_dir: Path, size: tuple[int, int]) -> None:
+    # The scan's decisions hang on thumbnail differences against fixed shares: the C block means must
+    # be OpenCV's numbers exactly, ties rounded to even included (half-up rounding differed on ~4% of
+    # frames), and sizes OpenCV treats otherwise (2x2 cells, fractional cells) must go to OpenCV.
+    assert scan._block_means is not None, "the C extension coverage/_block_mean.c was not built (pip install -e .)"
+    rng = np.random.default_rng(7)
+    frames = [cv2.resize(_demo_grey(recordings_dir, i), size, interpolation=cv2.INTER_AREA) for i in (0, 40, 80)]
+    frames += [rng.integers(0, 256, size[::-1], dtype=np.uint8), np.full(size[::-1], 128, np.uint8)]
+    for grey in frames:
+        expected = cv2.resize(grey, (80, 45), interpolation=cv2.INTER_AREA).astype(np.float32)
+        got = thumbnail(grey)
+        assert got.dtype == np.float32 and got.shape == (45, 80)
+        np.testing.assert_array_equal(got, expected)
+
+
+def test_thumbnails_without_the_c_extension_are_the_same(recordings_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    grey = _demo_grey(recordings_dir, 40)
+    with_c = thumbnail(grey)
+    # a mirrored view is not contiguous: OpenCV thumbnails it, and its contiguous copy the C loop
+    np.testing.assert_array_equal(thumbnail(grey[:, ::-1]), thumbnail(np.ascontiguousarray(grey[:, ::-1])))
+    monkeypatch.setattr(scan, "_block_means", None)
+    np.testing.assert_array_equal(thumbnail(grey), with_c)
 
 
 def test_a_held_board_is_tracked_to_the_accuracy_of_a_fresh_detection(recordings_dir: Path, tmp_path: Path) -> None:
