@@ -168,3 +168,25 @@ def test_the_command_leaves_without_teardown_unless_something_still_runs(tmp_pat
     assert done.returncode == 0, done.stderr
     assert "wrote " in done.stdout and (tmp_path / "board.svg").stat().st_size > 0
     assert ("teardown ran" in done.stdout) == busy_thread
+
+
+@pytest.mark.parametrize("users_value", [None, "2"])
+def test_the_command_runs_numpys_blas_on_one_thread_unless_the_user_chose(users_value: str | None) -> None:
+    # OpenBLAS's worker threads spin after each call and took CPU from calibcoach's own threads
+    # (cli.py); the setting must come before NumPy loads, and a value the user set wins.
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if users_value is not None:
+        env["OPENBLAS_NUM_THREADS"] = users_value
+    script = ("import os, calibcoach.app.cli, numpy\n"
+              "numpy.ones((300, 300)) @ numpy.ones((300, 300))\n"  # a BLAS call large enough to start its threads
+              "print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env)
+    assert done.returncode == 0, done.stderr
+    setting, threads = done.stdout.split()
+    assert setting == (users_value or "1")
+    if users_value is None:
+        assert threads == "1", "NumPy's BLAS started threads of its own"
