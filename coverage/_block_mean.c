@@ -5,7 +5,7 @@
  * board held still. cv2.resize with INTER_AREA takes its generic path for an integer factor other
  * than 2: per output pixel, one sum over the cell's pixels read through an offset table, ~0.25 ms
  * a 720p frame. Here the rows of a band of cells are added into per-column sums (uint16, which
- * vectorises: 16 rows of 255 fit) and those then into the cells, ~0.03 ms. The rounding is
+ * vectorises: 16 rows of 255 fit) and those then into the cells, ~0.05 ms. The rounding is
  * OpenCV's own (resizeAreaFast_Invoker): sum * (1.f / area) in single precision, rounded to the
  * nearest integer, ties to even (cvRound), so the thumbnails are the same numbers bit for bit.
  * Optional: where it is not built, scan.py calls cv2.resize.
