@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibcoach.app.replay import detected_frames, run_replay
 from calibcoach.app import scan
+from calibcoach.app.replay import detected_frames, run_replay
 from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan, thumbnail
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
