@@ -96,6 +96,10 @@ def main() -> int:
         args.folder = rendered("webcam720", args.style, seconds=784 / 30, fps=30.0) / "frames"
     video = args.folder.is_file()  # a video file: read with VideoCapture, one frame after the other
     files = [args.folder] if video else sorted(p for p in args.folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        inside = args.folder / "frames"
+        hint = f"; a render's cache keeps its images in {inside}: pass that" if inside.is_dir() else ""
+        raise SystemExit(f"replay_speed: no images in {args.folder}{hint}")
     for f in files:  # warm the page cache for both
         f.read_bytes()
     # The two alternate, so that the machine's own drift (~15% over a day on a shared host) falls on
