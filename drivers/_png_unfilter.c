@@ -3,8 +3,9 @@
  * The reconstruction rules are those of the PNG specification (section 9): each byte adds a
  * predictor from the reconstructed byte one pixel to its left (a), the byte above (b) and the
  * byte above-left (c), mod 256. Every rule but Up depends on the byte just reconstructed, so it
- * cannot be done in whole-array NumPy steps; in C it is one pass over the rows (~0.3 ms for a
- * 720p grey Sub frame against ~1.2 ms for NumPy's doubling prefix sums). libpng's adaptive rows
+ * cannot be done in whole-array NumPy steps; in C it is one pass over the rows (0.1 ms for a
+ * 720p grey Sub frame, in SSE2 blocks, against ~1.2 ms for NumPy's doubling prefix sums and 0.3
+ * byte by byte). libpng's adaptive rows
  * (a 720p grey frame written by OpenCV at compression 6: 525 Paeth, 189 Average) take 0.9 ms
  * with the branch-free Paeth predictor and grey rows undone two at a time, 2.7 ms before either.
  * Optional: where it is not built, png_fast falls back on NumPy and libpng.
@@ -13,6 +14,9 @@
 #include <Python.h>
 #include <stdlib.h>
 #include <string.h>
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 /* The predictor of the three neighbours closest to a + b - c, ties in the order a, b, c (PNG
  * specification 9.4), in stb_image's branch-free form: with lo, hi the smaller and larger of a and
@@ -102,6 +106,35 @@ static void unfilter_pair_grey(unsigned char filter0, unsigned char filter1, con
 
 static int pairs_with_next(unsigned char filter) { return filter == 3 || filter == 4; }
 
+/* A grey Sub row: each byte adds the one reconstructed to its left, a running sum mod 256. Byte by
+ * byte the loop is bound by its one store a byte (0.29 ms a 720p frame, warm), and OpenCV's
+ * imwrite filters every row Sub. With SSE2, 16 bytes at a time: their own running sum in four
+ * shift-and-add steps, then the carry from the bytes before (the previous block's last byte,
+ * broadcast) added; the carry's chain is one addition a block, the rest runs ahead of it.
+ * Integer additions mod 256 in either order: the same bytes. */
+static void unfilter_sub_row_grey(const unsigned char *restrict f, unsigned char *restrict cur, Py_ssize_t stride) {
+    Py_ssize_t x = 0;
+    unsigned char left = 0;
+#if defined(__SSE2__)
+    __m128i carry = _mm_setzero_si128();
+    for (; x + 16 <= stride; x += 16) {
+        __m128i v = _mm_loadu_si128((const __m128i *)(f + x));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 1));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 2));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 4));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 8));  /* byte i: the sum of bytes 0..i of the block */
+        __m128i last = _mm_srli_si128(v, 15);        /* the block's total, broadcast to all 16 bytes: */
+        last = _mm_unpacklo_epi8(last, last);
+        last = _mm_unpacklo_epi16(last, last);
+        last = _mm_shuffle_epi32(last, 0);
+        _mm_storeu_si128((__m128i *)(cur + x), _mm_add_epi8(v, carry));
+        carry = _mm_add_epi8(carry, last);
+    }
+    if (x > 0) left = cur[x - 1];
+#endif
+    for (; x < stride; x++) cur[x] = left = (unsigned char)(f[x] + left);
+}
+
 /* unfilter(rows, height, stride, bpp, out): `rows` holds `height` rows of 1 + `stride` bytes (the
  * filter byte first); `out` (writable, height * stride bytes) receives the reconstructed pixels,
  * grey (bpp 1) as they are, RGB (bpp 3) in OpenCV's BGR order. Returns None, or raises
@@ -125,6 +158,10 @@ static PyObject *unfilter(PyObject *self, PyObject *args) {
         const unsigned char *row = src + y * (stride + 1);
         const unsigned char *up = y > 0 ? dst + (y - 1) * stride : NULL;
         unsigned char *cur = dst + y * stride;
+        if (bpp == 1 && row[0] == 1) {
+            unfilter_sub_row_grey(row + 1, cur, stride);
+            continue;
+        }
         if (bpp == 1 && up != NULL && y + 1 < height && pairs_with_next(row[0]) && pairs_with_next(row[stride + 1])) {
             unfilter_pair_grey(row[0], row[stride + 1], row + 1, row + stride + 2, up, cur, cur + stride, stride);
             y++;  /* the next row is done too */
