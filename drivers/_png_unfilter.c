@@ -5,9 +5,9 @@
  * byte above-left (c), mod 256. Every rule but Up depends on the byte just reconstructed, so it
  * cannot be done in whole-array NumPy steps; in C it is one pass over the rows (0.1 ms for a
  * 720p grey Sub frame, in SSE2 blocks, against ~1.2 ms for NumPy's doubling prefix sums and 0.3
- * byte by byte). libpng's adaptive rows
- * (a 720p grey frame written by OpenCV at compression 6: 525 Paeth, 189 Average) take 0.9 ms
- * with the branch-free Paeth predictor and grey rows undone two at a time, 2.7 ms before either.
+ * byte by byte). libpng's adaptive rows (a 720p grey frame written by OpenCV at compression 6:
+ * 525 Paeth, 189 Average) take 0.9 ms with the branch-free Paeth predictor and grey rows undone
+ * two at a time, 2.7 ms before either.
  * Optional: where it is not built, png_fast falls back on NumPy and libpng.
  */
 #define PY_SSIZE_T_CLEAN
@@ -28,6 +28,35 @@ static inline unsigned char paeth(int a, int b, int c) {
     int lo = a < b ? a : b, hi = a < b ? b : a;
     int nearest = hi <= threshold ? lo : c;
     return (unsigned char)(threshold <= lo ? hi : nearest);
+}
+
+/* A grey Sub row: each byte adds the one reconstructed to its left, a running sum mod 256. Byte by
+ * byte the loop is bound by its one store a byte (0.29 ms a 720p frame, warm), and OpenCV's
+ * imwrite filters every row Sub. With SSE2, 16 bytes at a time: their own running sum in four
+ * shift-and-add steps, then the carry from the bytes before (the previous block's last byte,
+ * broadcast) added; the carry's chain is one addition a block, the rest runs ahead of it.
+ * Integer additions mod 256 in either order: the same bytes. */
+static void unfilter_sub_row_grey(const unsigned char *restrict f, unsigned char *restrict cur, Py_ssize_t stride) {
+    Py_ssize_t x = 0;
+    unsigned char left = 0;
+#if defined(__SSE2__)
+    __m128i carry = _mm_setzero_si128();
+    for (; x + 16 <= stride; x += 16) {
+        __m128i v = _mm_loadu_si128((const __m128i *)(f + x));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 1));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 2));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 4));
+        v = _mm_add_epi8(v, _mm_slli_si128(v, 8));  /* byte i: the sum of bytes 0..i of the block */
+        __m128i last = _mm_srli_si128(v, 15);        /* the block's total, broadcast to all 16 bytes: */
+        last = _mm_unpacklo_epi8(last, last);
+        last = _mm_unpacklo_epi16(last, last);
+        last = _mm_shuffle_epi32(last, 0);
+        _mm_storeu_si128((__m128i *)(cur + x), _mm_add_epi8(v, carry));
+        carry = _mm_add_epi8(carry, last);
+    }
+    if (x > 0) left = cur[x - 1];
+#endif
+    for (; x < stride; x++) cur[x] = left = (unsigned char)(f[x] + left);
 }
 
 /* One row. Sub, Average and Paeth carry the byte just reconstructed, `bpp` bytes back: it is kept
@@ -53,6 +82,10 @@ static int NAME(unsigned char filter, const unsigned char *restrict f, const uns
             for (k = 0; k < BPP; k++) cur[x + AT(k)] = f[x + k];                                   \
         return 0;                                                                                  \
     case 1:                                                                                        \
+        if (BPP == 1) { /* grey: 16 bytes at a time where SSE2 is there */                        \
+            unfilter_sub_row_grey(f, cur, stride);                                                 \
+            return 0;                                                                              \
+        }                                                                                          \
         for (x = 0; x < stride; x += BPP)                                                          \
             for (k = 0; k < BPP; k++) cur[x + AT(k)] = left[k] = (unsigned char)(f[x + k] + left[k]); \
         return 0;                                                                                  \
@@ -86,8 +119,8 @@ ROW_FUNCTION(unfilter_row_rgb_to_bgr, 3, AT_REVERSED)
  * bytes form one chain, each waiting for the byte just reconstructed to its left (a Paeth byte:
  * an add, two compares and three selects in a row), which leaves most of the CPU idle; the second
  * row needs only the first's bytes above and above-left of it, so the two chains run side by
- * side (1.5 -> 0.9 ms on an adaptively filtered 720p frame). libpng's adaptive filtering (PIL, imageio, OpenCV given a compression
- * level) makes most rows Paeth or Average. The filters are loop-invariant, so -O3 unswitches the
+ * side (1.5 -> 0.9 ms on an adaptively filtered 720p frame). libpng's adaptive filtering (PIL,
+ * imageio, OpenCV given a compression level) makes most rows Paeth or Average. The filters are loop-invariant, so -O3 unswitches the
  * loop into one specialised loop per pair. RGB rows already hold three chains (one a channel). */
 static void unfilter_pair_grey(unsigned char filter0, unsigned char filter1, const unsigned char *restrict f0,
                                const unsigned char *restrict f1, const unsigned char *restrict up,
@@ -105,35 +138,6 @@ static void unfilter_pair_grey(unsigned char filter0, unsigned char filter1, con
 }
 
 static int pairs_with_next(unsigned char filter) { return filter == 3 || filter == 4; }
-
-/* A grey Sub row: each byte adds the one reconstructed to its left, a running sum mod 256. Byte by
- * byte the loop is bound by its one store a byte (0.29 ms a 720p frame, warm), and OpenCV's
- * imwrite filters every row Sub. With SSE2, 16 bytes at a time: their own running sum in four
- * shift-and-add steps, then the carry from the bytes before (the previous block's last byte,
- * broadcast) added; the carry's chain is one addition a block, the rest runs ahead of it.
- * Integer additions mod 256 in either order: the same bytes. */
-static void unfilter_sub_row_grey(const unsigned char *restrict f, unsigned char *restrict cur, Py_ssize_t stride) {
-    Py_ssize_t x = 0;
-    unsigned char left = 0;
-#if defined(__SSE2__)
-    __m128i carry = _mm_setzero_si128();
-    for (; x + 16 <= stride; x += 16) {
-        __m128i v = _mm_loadu_si128((const __m128i *)(f + x));
-        v = _mm_add_epi8(v, _mm_slli_si128(v, 1));
-        v = _mm_add_epi8(v, _mm_slli_si128(v, 2));
-        v = _mm_add_epi8(v, _mm_slli_si128(v, 4));
-        v = _mm_add_epi8(v, _mm_slli_si128(v, 8));  /* byte i: the sum of bytes 0..i of the block */
-        __m128i last = _mm_srli_si128(v, 15);        /* the block's total, broadcast to all 16 bytes: */
-        last = _mm_unpacklo_epi8(last, last);
-        last = _mm_unpacklo_epi16(last, last);
-        last = _mm_shuffle_epi32(last, 0);
-        _mm_storeu_si128((__m128i *)(cur + x), _mm_add_epi8(v, carry));
-        carry = _mm_add_epi8(carry, last);
-    }
-    if (x > 0) left = cur[x - 1];
-#endif
-    for (; x < stride; x++) cur[x] = left = (unsigned char)(f[x] + left);
-}
 
 /* unfilter(rows, height, stride, bpp, out): `rows` holds `height` rows of 1 + `stride` bytes (the
  * filter byte first); `out` (writable, height * stride bytes) receives the reconstructed pixels,
@@ -158,10 +162,6 @@ static PyObject *unfilter(PyObject *self, PyObject *args) {
         const unsigned char *row = src + y * (stride + 1);
         const unsigned char *up = y > 0 ? dst + (y - 1) * stride : NULL;
         unsigned char *cur = dst + y * stride;
-        if (bpp == 1 && row[0] == 1) {
-            unfilter_sub_row_grey(row + 1, cur, stride);
-            continue;
-        }
         if (bpp == 1 && up != NULL && y + 1 < height && pairs_with_next(row[0]) && pairs_with_next(row[stride + 1])) {
             unfilter_pair_grey(row[0], row[stride + 1], row + 1, row + stride + 2, up, cur, cur + stride, stride);
             y++;  /* the next row is done too */
