@@ -6,16 +6,19 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from calibcoach.app.outputs.report import write_session_outputs
 from calibcoach.app.progress import SolveStages, terminal_bar
-from calibcoach.app.replay import run_replay
-from calibcoach.app.session import FrameOutcome, Progress, SessionSettings
+from calibcoach.app.scan_stream import ScanStream
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.select import SelectorSettings
-from calibcoach.drivers.base import Frame, SourceInfo
+from calibcoach.drivers.base import Frame, FrameSource, SourceInfo
 from calibcoach.drivers.errors import CalibcoachError
 from calibcoach.drivers.replay import open_source
+
+# The session, the final solve and the outputs (~0.15 s of imports) are imported where they are
+# used, so that `calibrate` can start scanning footage before they load (app/scan_stream.py).
+if TYPE_CHECKING:
+    from calibcoach.app.session import FrameOutcome, Progress, SessionSettings
 
 
 class ProgressLine:
@@ -74,16 +77,21 @@ def error_words(p: Progress) -> str:
     return f"{p.expected_error_px:.3f}/{p.target_px:.3f} px"
 
 
+def photos_within_budget(args: argparse.Namespace, info: SourceInfo, *, live: bool = False) -> bool:
+    """A folder handed to `calibrate` (a set of photos) that fits the frame budget: chosen by a
+    person, so every usable photo is kept, and each is detected in full."""
+    return not live and info.kind == "folder" and (info.frame_count or 0) <= args.max_frames
+
+
 def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) -> SessionSettings:
     """The session's settings from the command line; live and replay of its recording must agree."""
+    from calibcoach.app.session import SessionSettings
+    from calibcoach.coverage.select import SelectorSettings
+
     photos = not live and info.kind == "folder"  # a folder handed to `calibrate` is a set of photos
     return SessionSettings(
         model=args.model,
-        # A folder of photos that fits the frame budget was chosen by a person: keep every usable one.
-        selector=SelectorSettings(
-            max_frames=args.max_frames,
-            keep_all_usable=photos and (info.frame_count or 0) <= args.max_frames,
-        ),
+        selector=SelectorSettings(max_frames=args.max_frames, keep_all_usable=photos_within_budget(args, info, live=live)),
         stop_when_done=not args.no_stop,
         use_motion_gate=not photos,
     )
@@ -113,9 +121,23 @@ def board_for_source(args: argparse.Namespace, board: BoardSpec, stored: dict | 
 def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[str]) -> int:
     source = open_source(args.source)
     info = source.info
-    settings = session_settings(args, info, live=False)
     board = board_for_source(args, board, None if info.board is None else dict(info.board))  # a recording knows its board
     print(f"calibcoach: {info.description}; board {board.describe()}", file=sys.stderr)
+    # Footage is scanned from here on, in a process of its own, while the session's modules load
+    # (app/scan_stream.py). A small folder of photos is kept whole; a long sequence tracks its held
+    # boards unless asked not to.
+    scan = ScanStream(source, board, workers=args.workers, every_frame=args.every_frame or photos_within_budget(args, info))
+    try:
+        return _replay(args, argv, source, board, scan)
+    finally:
+        scan.close()
+
+
+def _replay(args: argparse.Namespace, argv: list[str], source: FrameSource, board: BoardSpec, scan: ScanStream) -> int:
+    from calibcoach.app.replay import run_replay
+
+    info = source.info
+    settings = session_settings(args, info, live=False)
     with open_replay_viewer(args) as viewer:
         progress = ProgressLine(info.frame_count, enabled=not args.quiet)
 
@@ -125,10 +147,7 @@ def calibrate_command(args: argparse.Namespace, board: BoardSpec, *, argv: list[
 
         with source:
             try:
-                # A small folder of photos is kept whole; a long sequence tracks its held boards unless asked not to.
-                every_frame = args.every_frame or settings.selector.keep_all_usable
-                session, stats = run_replay(source, board, settings, workers=args.workers, on_outcome=on_outcome,
-                                            every_frame=every_frame)
+                session, stats = run_replay(source, board, settings, on_outcome=on_outcome, scan=scan)
             finally:
                 progress.close()
         return _finish_replay(args, argv, source, info, session, stats, viewer)
@@ -179,6 +198,8 @@ def keep_serving(viewer) -> None:
 
 
 def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
+    from calibcoach.app.outputs.report import write_session_outputs
+
     if stats.variant_found and stats.variant_found != "standard pattern":
         print(f"calibcoach: detected {stats.variant_found}", file=sys.stderr)
     for skipped in source.skipped[:10]:

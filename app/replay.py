@@ -3,7 +3,8 @@
 Frames are decoded and detected (or tracked: app/scan.py) ahead on worker threads, one detector
 per thread, while the session consumes them strictly in frame order, so the decisions are those
 of a single-threaded run. Footage (videos, image folders) is scanned in a child process of its
-own (app/scan_process.py), so the scan's Python and the session's never wait for one GIL.
+own (app/scan_process.py, started by app/scan_stream.py), so the scan's Python and the
+session's never wait for one GIL.
 Replay stops reading as soon as the session's stop rule is met.
 """
 
@@ -11,13 +12,13 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
-from calibcoach.app.scan import HeldFrameScan, Seen, board_shift_px
-from calibcoach.app.scan_process import fork_available, scanned_in_child
+from calibcoach.app.scan import Seen, board_shift_px
+from calibcoach.app.scan_stream import ScanStream
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -25,9 +26,6 @@ from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.coverage.select import board_speed_px_s
 from calibcoach.drivers.base import Frame, FrameSource
 from calibcoach.drivers.errors import SourceError
-
-TRACKED_KINDS = ("folder", "video")  # footage from elsewhere; recordings replay a live session frame by frame
-_SETTLE_FRAMES = 30  # frames detected one by one while the print's variant is still unknown
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,72 +40,6 @@ class ReplayStats:
     redetection: RedetectionCounts | None = None  # frames re-detected on a local view (wide lenses), None if none were
 
 
-def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
-                    settle: CharucoBoardDetector | None = None, scans_out: list[HeldFrameScan] | None = None,
-                    every_frame: bool = False) -> Iterator[Seen]:
-    """Every frame of `source` in order with its detection (the source decodes ahead, `workers` threads detect).
-
-    A held board is tracked from the frame before rather than detected anew (`HeldFrameScan`,
-    app/scan.py) in footage from elsewhere (video files, image folders) unless `every_frame`; a
-    calibcoach recording is a live session's frames, and its replay decides each of them as the
-    live session did, so every frame is detected. The scan is appended to `scans_out` so the
-    caller can report how many frames were tracked.
-    """
-    footage = source.info.kind in TRACKED_KINDS
-    first = settle or CharucoBoardDetector(board)
-    frames: Iterator[Frame] = iter(source)  # sources decode ahead themselves (drivers/replay.py `_decoded_ahead`)
-    yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
-    spec = _settled_spec(first)
-    scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=footage and not every_frame,
-                         judge_transit=footage)
-    if scans_out is not None:
-        scans_out.append(scan)
-    yield from scan
-
-
-@dataclass
-class _ChildCounts:
-    """What the scan in the child process counted, as it last said."""
-
-    tracked: int = 0
-
-
-def _scanned_in_child(source: FrameSource, board: BoardSpec, counts: _ChildCounts, *, settle: CharucoBoardDetector,
-                      frame_bytes: int, workers: int, every_frame: bool) -> Iterator[Seen]:
-    """`detected_frames` run in a child process; the print's variant, the scan's counts and the
-    source's unreadable frames are mirrored into `settle`, `counts` and `source.skipped` as they come."""
-    scans: list[HeldFrameScan] = []  # the child's scan, in the child
-
-    def make_seen() -> Iterator[Seen]:  # runs in the child, on its copies of source and settle
-        return detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame)
-
-    def state() -> tuple:  # in the child
-        variant = (bool(settle.spec.legacy), bool(settle.spec.inverted)) if settle.settled else None
-        return variant, sum(scan.tracked for scan in scans), list(source.skipped)
-
-    def apply_state(child_state: tuple) -> None:  # in the parent
-        variant, counts.tracked, source.skipped = child_state
-        if variant is not None and not settle.settled:
-            settle.settle(legacy=variant[0], inverted=variant[1])
-
-    return scanned_in_child(make_seen, frame_bytes, state=state, apply_state=apply_state)
-
-
-def _settling(frames: Iterable[Frame], detector: CharucoBoardDetector) -> Iterator[tuple[Frame, Detection]]:
-    """Detect one by one until the print's legacy/inverted variant is known (or enough frames tried)."""
-    for frame in frames:
-        yield frame, detector.detect(frame.grey())
-        if detector.settled or frame.index >= _SETTLE_FRAMES:
-            return
-
-
-def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
-    """The board as settled, or with the variants not yet seen taken as plain."""
-    if detector.settled:
-        return detector.spec
-    return detector.spec.with_detected(legacy=bool(detector.spec.legacy), inverted=bool(detector.spec.inverted))
-
-
 def run_replay(
     source: FrameSource,
     board: BoardSpec,
@@ -117,6 +49,7 @@ def run_replay(
     on_outcome: Callable[[FrameOutcome, Frame], None] | None = None,
     every_frame: bool = False,
     in_child: bool = True,
+    scan: ScanStream | None = None,
 ) -> tuple[CalibrationSession, ReplayStats]:
     """Feed the frames of `source` to a new session until the source ends or the stop rule is met.
 
@@ -124,30 +57,26 @@ def run_replay(
     tracked frames of a hold the session judged usable join its reserve for the final solve.
     Footage (folders, videos) is scanned in a child process beside the session
     (app/scan_process.py) unless `in_child` is False; the decisions are the same either way.
+    `scan` is that scan when the caller started it already (app/commands.py starts it before the
+    session's modules load); `workers`, `every_frame` and `in_child` are then the scan's own.
+    The scan is closed when the reading ends.
     """
     info = source.info
     settings = settings or SessionSettings(use_motion_gate=info.kind != "folder")
-    settle = CharucoBoardDetector(board)
+    if scan is None:
+        scan = ScanStream(source, board, workers=workers, every_frame=every_frame, in_child=in_child)
+    settle = scan.settle
     feed = _Feeder(settle, settings, on_outcome, locked_controls=info.locked_controls,
                    focus_events=focus_events(info.events))
-    start = time.perf_counter()
-    scans: list[HeldFrameScan] = []
-    frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
-    if info.kind in TRACKED_KINDS and frame_bytes and in_child and fork_available():
-        counts = _ChildCounts()
-        feed.run(_scanned_in_child(source, board, counts, settle=settle, frame_bytes=frame_bytes, workers=workers,
-                                   every_frame=every_frame))
-        tracked = counts.tracked
-    else:
-        feed.run(detected_frames(source, board, workers=workers, settle=settle, scans_out=scans, every_frame=every_frame))
-        tracked = sum(scan.tracked for scan in scans)
+    feed.run(scan)
+    tracked = scan.tracked
     session = feed.session
     if session is None:
         skipped = f" ({len(source.skipped)} unreadable: {source.skipped[0].reason})" if source.skipped else ""
         raise SourceError(f"{info.description} delivered no frames{skipped}; check the path and the file format")
     session.board = settle.spec
     redetector = None if feed.assistant is None else feed.assistant.redetector
-    return session, ReplayStats(feed.read, time.perf_counter() - start, feed.stopped, feed.interrupted, settle.spec,
+    return session, ReplayStats(feed.read, time.perf_counter() - scan.started_at, feed.stopped, feed.interrupted, settle.spec,
                                 settle.variant_found, tracked, None if redetector is None else redetector.counts)
 
 
@@ -190,8 +119,8 @@ class _Feeder:
     def session(self) -> CalibrationSession | None:
         return None if self.assistant is None else self.assistant.session
 
-    def run(self, stream: Iterator[Seen]) -> None:
-        """Feed `stream` until it ends or the stop rule is met."""
+    def run(self, stream: Iterable[Seen]) -> None:
+        """Feed `stream` until it ends or the stop rule is met, then close it (the scan ends)."""
         try:
             for seen in stream:
                 self.read += 1

@@ -53,7 +53,20 @@ def fork_available() -> bool:
 
 def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
                      state: Callable[[], Any], apply_state: Callable[[Any], None]) -> Iterator[Seen]:
-    """The `Seen` frames of `make_seen()`, produced in a forked child process (see the module docstring).
+    """The `Seen` frames of `make_seen()`, produced in a forked child process started on the first
+    `next()` and ended when the iterator ends or is closed (see `ChildScan`, which starts at once)."""
+    scan = ChildScan(make_seen, frame_bytes, state=state, apply_state=apply_state)
+    try:
+        yield from scan
+    finally:
+        scan.close()
+
+
+class ChildScan:
+    """The `Seen` frames of `make_seen()`, produced in a child process forked when this is made.
+
+    Iterate it once; `close()` ends the child (if still running) and frees the ring, whether or
+    not the frames were read (a caller that fails before reading must still close it).
 
     Args:
         make_seen: called in the child; its frames must hold images of at most `frame_bytes`.
@@ -61,56 +74,66 @@ def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, 
         state: called in the child after each frame; a small picklable value.
         apply_state: called in the parent with that value before the frame is yielded, and at the end.
 
-    Raises:
-        Whatever `make_seen` raised in the child (its own exception where it pickles), or
-        RuntimeError when the child died without saying why (killed, out of memory).
+    Iterating raises whatever `make_seen` raised in the child (its own exception where it pickles),
+    or RuntimeError when the child died without saying why (killed, out of memory).
     """
-    slots = frames_ahead(frame_bytes)
-    context = multiprocessing.get_context("fork")
-    # OpenCV's own thread pool goes down to one thread here, before the fork: the scan detects on
-    # threads of its own beside its decoders, so OpenCV's threads inside each call would only
-    # oversubscribe the cores (corners are the same either way), and a forked child must never
-    # reconfigure a pool whose threads stayed in the parent (it hangs in pthread_cond_destroy; seen
-    # when the bench's process had detected with two threads before). The session asks for one
-    # thread anyway (app/session.py).
-    cv2.setNumThreads(1)
-    memory = mmap.mmap(-1, slots * frame_bytes)  # anonymous and MAP_SHARED: the child's writes are seen here
-    ring = np.frombuffer(memory, np.uint8).reshape(slots, frame_bytes)
-    free = context.Semaphore(slots)
-    receiving, sending = context.Pipe(duplex=False)
-    child = context.Process(target=_produce, args=(make_seen, state, sending, free, ring, os.getpid()),
-                            name="calibcoach-scan", daemon=True)
-    child.start()
-    sending.close()  # the child holds the sending end: the parent sees EOF when it exits
-    try:
-        while True:
+
+    def __init__(self, make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
+                 state: Callable[[], Any], apply_state: Callable[[Any], None]) -> None:
+        slots = frames_ahead(frame_bytes)
+        context = multiprocessing.get_context("fork")
+        # OpenCV's own thread pool goes down to one thread here, before the fork: the scan detects on
+        # threads of its own beside its decoders, so OpenCV's threads inside each call would only
+        # oversubscribe the cores (corners are the same either way), and a forked child must never
+        # reconfigure a pool whose threads stayed in the parent (it hangs in pthread_cond_destroy; seen
+        # when the bench's process had detected with two threads before). The session asks for one
+        # thread anyway (app/session.py).
+        cv2.setNumThreads(1)
+        self._apply_state = apply_state
+        self._memory = mmap.mmap(-1, slots * frame_bytes)  # anonymous and MAP_SHARED: the child's writes are seen here
+        self._ring: np.ndarray | None = np.frombuffer(self._memory, np.uint8).reshape(slots, frame_bytes)
+        self._free = context.Semaphore(slots)
+        self._receiving, sending = context.Pipe(duplex=False)
+        self._child = context.Process(target=_produce, args=(make_seen, state, sending, self._free, self._ring, os.getpid()),
+                                      name="calibcoach-scan", daemon=True)
+        self._child.start()
+        sending.close()  # the child holds the sending end: the parent sees EOF when it exits
+        self._closed = False
+
+    def __iter__(self) -> Iterator[Seen]:
+        while not self._closed:
             try:
-                message = receiving.recv()
+                message = self._receiving.recv()
             except EOFError:
-                child.join(timeout=5.0)
-                raise RuntimeError(f"the process scanning the frames ended without finishing (exit code {child.exitcode}: "
+                self._child.join(timeout=5.0)
+                raise RuntimeError(f"the process scanning the frames ended without finishing (exit code {self._child.exitcode}: "
                                    "killed, out of memory or crashed in OpenCV); run the command again") from None
             kind = message[0]
             if kind == "frame":
                 _kind, slot, shape, (index, timestamp_ns, name, controls), seen, child_state = message
                 size = int(np.prod(shape))
-                image = ring[slot, :size].reshape(shape).copy()
-                free.release()
-                apply_state(child_state)
+                image = self._ring[slot, :size].reshape(shape).copy()  # type: ignore[index]
+                self._free.release()
+                self._apply_state(child_state)
                 yield replace(seen, frame=Frame(index, timestamp_ns, image, name, MappingProxyType(controls)))
             elif kind == "end":
-                apply_state(message[1])
+                self._apply_state(message[1])
                 return
             else:  # "error"
-                apply_state(message[2])
+                self._apply_state(message[2])
                 raise message[1]
-    finally:
-        if child.is_alive():
-            child.terminate()
-        child.join()
-        receiving.close()
-        del ring  # the array's hold on the mapping goes first, or close() refuses
-        memory.close()
+
+    def close(self) -> None:
+        """End the child if it still runs and free the ring (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._child.is_alive():
+            self._child.terminate()
+        self._child.join()
+        self._receiving.close()
+        self._ring = None  # the array's hold on the mapping goes first, or close() refuses
+        self._memory.close()
 
 
 def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,

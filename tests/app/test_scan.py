@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from calibcoach.app import scan
-from calibcoach.app.replay import detected_frames, run_replay
+from calibcoach.app.replay import run_replay
 from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan, thumbnail
+from calibcoach.app.scan_stream import detected_frames
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector

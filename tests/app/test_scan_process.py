@@ -121,3 +121,46 @@ def test_a_child_scan_starts_after_opencv_ran_its_own_threads(recordings_dir: Pa
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "read 20" in done.stdout
+
+
+def test_a_started_scan_closed_unread_ends_its_child_and_frees_the_ring(recordings_dir: Path, tmp_path: Path) -> None:
+    # `calibrate` starts the scan before the session's modules load; an error in between (a viewer
+    # port taken, Ctrl-C) closes a scan nobody read: its child must end and its ring be unmapped.
+    from calibcoach.app.scan_stream import ScanStream
+
+    folder = _folder(recordings_dir, tmp_path / "frames", frames=12)
+    mappings_before = _shared_mappings()
+    scan = ScanStream(ImageFolderSource(folder), BoardSpec())
+    assert scan.in_child and [p.name for p in multiprocessing.active_children()] == ["calibcoach-scan"]
+    scan.close()
+    scan.close()  # idempotent
+    assert multiprocessing.active_children() == []
+    assert _shared_mappings() == mappings_before
+
+
+def test_calibrate_starts_scanning_footage_before_the_session_loads(recordings_dir: Path, tmp_path: Path) -> None:
+    # The start of a replay ran on one core while the session's modules loaded; the scan's process
+    # now starts first. In a fresh interpreter, so that no earlier test has imported the session.
+    import subprocess
+    import sys
+    import textwrap
+
+    folder = _folder(recordings_dir, tmp_path / "frames", frames=12)
+    script = textwrap.dedent(f"""
+        import sys
+        from calibcoach.app import cli, scan_stream
+        started = []
+        class Watched(scan_stream.ScanStream):
+            def __init__(self, *args, **kwargs):
+                super().__init__(*args, **kwargs)
+                started.append((self.in_child, "calibcoach.app.session" in sys.modules))
+        scan_stream.ScanStream = Watched
+        import calibcoach.app.commands as commands
+        commands.ScanStream = Watched
+        code = cli.main(["calibrate", {str(folder)!r}, "--out", {str(tmp_path / "out")!r}, "--quiet", "--accept-partial"])
+        print("started", started, "code", code, "session loaded", "calibcoach.app.session" in sys.modules)
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "started [(True, False)]" in done.stdout  # forked, before the session's modules were imported
+    assert "session loaded True" in done.stdout  # ... which the replay then loaded and ran
