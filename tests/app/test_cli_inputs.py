@@ -190,3 +190,32 @@ def test_the_command_runs_numpys_blas_on_one_thread_unless_the_user_chose(users_
     assert setting == (users_value or "1")
     if users_value is None:
         assert threads == "1", "NumPy's BLAS started threads of its own"
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_the_command_reuses_freed_frame_sized_blocks_instead_of_faulting_them_in_again(keep: bool) -> None:
+    # glibc gave freed frames at its heap's top back to the kernel, so every frame's arrays came
+    # back as ~225 new pages, each faulted in and zeroed (cli.py). Importing the command keeps them
+    # for reuse; CALIBCOACH_MALLOPT=0 leaves glibc's defaults (the control that shows the count means it).
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("the setting is glibc's; other C libraries keep their own policy")
+    env = {**os.environ, "CALIBCOACH_MALLOPT": "1" if keep else "0"}
+    # A hold's frames wait for its judgement and are then freed together, ten holds of 30 frames.
+    script = ("import resource, calibcoach.app.cli, numpy\n"
+              "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+              "for hold in range(10):\n"
+              "    frames = [numpy.full((720, 1280), i, numpy.uint8) for i in range(30)]\n"  # written whole, as decoded
+              "    del frames\n"
+              "print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 300)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=env)
+    assert done.returncode == 0, done.stderr
+    faults_a_frame = float(done.stdout)  # a 720p grey frame is 225 pages
+    if keep:
+        assert faults_a_frame < 50, f"{faults_a_frame:.0f} page faults a frame: freed frames were not reused"
+    else:
+        assert faults_a_frame > 150, f"{faults_a_frame:.0f} page faults a frame with glibc's defaults: the test measures nothing"
