@@ -35,14 +35,14 @@ def _keep_freed_frames_for_reuse() -> None:
     freed: a 784-frame 720p replay made ~104,000 page faults instead of ~184,000, its processes
     used ~0.2 s less system time, and it ran 2-4% faster (paired runs; same decisions and cameras)
     for ~25 MB more peak memory. Set before NumPy and OpenCV allocate; forked children inherit it.
-    CALIBCOACH_MALLOPT=0 leaves glibc's own policy (a small device that needs the memory back);
-    a no-op where the C library has no `mallopt` (macOS) or ignores it (musl).
+    CALIBCOACH_MALLOPT=0 leaves glibc's own policy (a small device that needs the memory back).
+    Linux only, and a no-op where the C library ignores it (musl).
     """
-    if os.environ.get("CALIBCOACH_MALLOPT") == "0":
+    if os.environ.get("CALIBCOACH_MALLOPT") == "0" or not sys.platform.startswith("linux"):
         return
     try:
         mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):
         return
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>

@@ -85,7 +85,6 @@ class ScanStream:
                  in_child: bool = True) -> None:
         info = source.info
         self.started_at = time.perf_counter()  # the replay's reading time counts from here
-        self.source = source
         self.settle = CharucoBoardDetector(board)
         self._scans: list[HeldFrameScan] = []  # the scan in process (in the child, the child's)
         self._counts = _ChildCounts()
