@@ -136,6 +136,20 @@ class ChildScan:
         self._memory.close()
 
 
+def _pixels_for_the_session(seen: Seen) -> np.ndarray:
+    """The pixels the replay needs of a frame: a tracked or skipped frame's in grey only.
+
+    The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_enough`)
+    and only counts a frame skipped in transit; neither is logged or previewed, so of a colour
+    frame the grey conversion the scan already made crosses (a third of the bytes, and no second
+    conversion in the replay). Frames the session decides keep their colour (previews, the check
+    image). The decisions are the same: the replay would convert those frames to exactly this grey.
+    """
+    if seen.skipped or seen.tracked_from is not None:
+        return seen.frame.grey()
+    return seen.frame.image
+
+
 def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,
              free: Any, ring: np.ndarray, parent_pid: int) -> None:
     """The child: scan, and hand every frame over in order (runs after fork; exits with the parent's pipe)."""
@@ -143,7 +157,7 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
     slots, frame_bytes = ring.shape
     try:
         for count, seen in enumerate(make_seen()):
-            image = np.ascontiguousarray(seen.frame.image)
+            image = np.ascontiguousarray(_pixels_for_the_session(seen))
             if image.nbytes > frame_bytes:
                 raise ValueError(f"frame {seen.frame.index} is {image.shape}, larger than the source's "
                                  f"{frame_bytes} bytes a frame")

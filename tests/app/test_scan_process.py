@@ -164,3 +164,32 @@ def test_calibrate_starts_scanning_footage_before_the_session_loads(recordings_d
     assert done.returncode == 0, done.stderr[-2000:]
     assert "started [(True, False)]" in done.stdout  # forked, before the session's modules were imported
     assert "session loaded True" in done.stdout  # ... which the replay then loaded and ran
+
+
+def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: Path, tmp_path: Path) -> None:
+    # Tracked and skipped frames are judged in grey or only counted, so the child sends the grey it
+    # made (a third of the bytes); decided frames keep their colour for previews. The pixels are the
+    # replay's own grey conversion, so the decisions are those of the scan in process.
+    from calibcoach.app.scan_stream import ScanStream
+
+    folder = tmp_path / "colour"
+    folder.mkdir()
+    for index in range(40):
+        grey = cv2.imread(str(recordings_dir / "demo_webcam720_careful" / "frames" / f"{index:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        colour = cv2.merge([grey, cv2.add(grey, 9), cv2.subtract(grey, 7)])  # channels differ: grey is a real conversion
+        cv2.imwrite(str(folder / f"{index:04d}.png"), colour)
+    with ScanStream(ImageFolderSource(folder), BoardSpec()) as in_child:
+        crossed = list(in_child)
+    with ScanStream(ImageFolderSource(folder), BoardSpec(), in_child=False) as in_process:
+        local = list(in_process)
+    tracked = [s for s in crossed if s.tracked_from is not None]
+    assert tracked and len(tracked) < len(crossed)  # both kinds are there
+    for child, here in zip(crossed, local, strict=True):
+        assert child.frame.index == here.frame.index and child.tracked_from == here.tracked_from
+        if child.tracked_from is not None or child.skipped:
+            assert child.frame.image.ndim == 2 and np.array_equal(child.frame.image, here.frame.grey())
+        else:
+            assert child.frame.image.ndim == 3 and np.array_equal(child.frame.image, here.frame.image)
+        assert np.array_equal(child.detection.corners_px, here.detection.corners_px)
+    colour_decisions = _decisions(recordings_dir, folder, in_child=True)
+    assert colour_decisions == _decisions(recordings_dir, folder, in_child=False)  # frames, corners, decisions, counts
