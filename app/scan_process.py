@@ -12,8 +12,8 @@ So footage is scanned in a forked child process. The child runs the very generat
 in process (`detected_frames`); each frame's pixels (of a colour frame the session only tracks
 or skips, its grey) go through a ring of shared-memory slots (a semaphore counts the free ones,
 so the child never runs more than the ring ahead) and the rest of what it saw through a pipe, in
-order. The parent copies the pixels out (0.1 ms at 720p) and
-frees the slot, so frames it keeps (a hold waiting for its judgement) never pin the ring.
+order. The parent copies the pixels out (0.1 ms at 720p) and frees the slot, so frames it keeps
+(a hold waiting for its judgement) never pin the ring.
 
 State the child learns that the parent needs (the print's settled variant, the scan's counters,
 frames the source could not decode) is sent with every frame and handed to `apply_state` before
