@@ -86,7 +86,7 @@ class ScanStream:
         info = source.info
         self.started_at = time.perf_counter()  # the replay's reading time counts from here
         self.settle = CharucoBoardDetector(board)
-        self._scans: list[HeldFrameScan] = []  # the scan in process (in the child, the child's)
+        self._scans: list[HeldFrameScan] = []  # the scan when it runs in process (a child keeps its own)
         self._counts = _ChildCounts()
         frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
         self.in_child = info.kind in TRACKED_KINDS and bool(frame_bytes) and in_child and fork_available()
