@@ -52,22 +52,11 @@ def fork_available() -> bool:
     return "fork" in multiprocessing.get_all_start_methods()
 
 
-def scanned_in_child(make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
-                     state: Callable[[], Any], apply_state: Callable[[Any], None]) -> Iterator[Seen]:
-    """The `Seen` frames of `make_seen()`, produced in a forked child process started on the first
-    `next()` and ended when the iterator ends or is closed (see `ChildScan`, which starts at once)."""
-    scan = ChildScan(make_seen, frame_bytes, state=state, apply_state=apply_state)
-    try:
-        yield from scan
-    finally:
-        scan.close()
-
-
 class ChildScan:
     """The `Seen` frames of `make_seen()`, produced in a child process forked when this is made.
 
-    Iterate it once; `close()` ends the child (if still running) and frees the ring, whether or
-    not the frames were read (a caller that fails before reading must still close it).
+    Iterate it once; `close()` (or leaving `with`) ends the child (if still running) and frees the
+    ring, whether or not the frames were read (a caller that fails before reading must still close it).
 
     Args:
         make_seen: called in the child; its frames must hold images of at most `frame_bytes`.
@@ -135,6 +124,12 @@ class ChildScan:
         self._receiving.close()
         self._ring = None  # the array's hold on the mapping goes first, or close() refuses
         self._memory.close()
+
+    def __enter__(self) -> ChildScan:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _pixels_for_the_session(seen: Seen) -> np.ndarray:

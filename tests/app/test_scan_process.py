@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calibcoach.app.replay import run_replay
-from calibcoach.app.scan_process import fork_available, scanned_in_child
+from calibcoach.app.scan_process import ChildScan, fork_available
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.select import SelectorSettings
@@ -21,12 +21,13 @@ from calibcoach.drivers.replay import ImageFolderSource
 pytestmark = pytest.mark.skipif(not fork_available(), reason="the scan runs in a child process only where fork exists")
 
 
-def _folder(recordings_dir: Path, folder: Path, frames: int = 60) -> Path:
-    """The demo capture's first frames as a plain image folder (footage: scanned with tracking)."""
+def _folder(recordings_dir: Path, folder: Path, frames: int = 60, *, colour: bool = False) -> Path:
+    """The demo capture's first frames as a plain image folder (footage: scanned with tracking);
+    `colour`: as BGR frames whose channels differ, so that their grey is a real conversion."""
     folder.mkdir()
     for index in range(frames):
         grey = cv2.imread(str(recordings_dir / "demo_webcam720_careful" / "frames" / f"{index:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        cv2.imwrite(str(folder / f"{index:04d}.png"), grey)
+        cv2.imwrite(str(folder / f"{index:04d}.png"), cv2.merge([grey, cv2.add(grey, 9), cv2.subtract(grey, 7)]) if colour else grey)
     return folder
 
 
@@ -53,8 +54,9 @@ def test_an_error_in_the_child_is_raised_in_the_parent() -> None:
         raise ValueError("frame 3 is damaged")
         yield  # pragma: no cover - makes this a generator
 
-    with pytest.raises(ValueError, match="frame 3 is damaged"):
-        list(scanned_in_child(failing, 64, state=lambda: None, apply_state=lambda _s: None))
+    with ChildScan(failing, 64, state=lambda: None, apply_state=lambda _s: None) as scan, \
+            pytest.raises(ValueError, match="frame 3 is damaged"):
+        list(scan)
 
 
 def test_a_child_that_dies_is_reported_not_waited_for() -> None:
@@ -62,8 +64,9 @@ def test_a_child_that_dies_is_reported_not_waited_for() -> None:
         os._exit(9)
         yield  # pragma: no cover
 
-    with pytest.raises(RuntimeError, match="exit code 9"):
-        list(scanned_in_child(dying, 64, state=lambda: None, apply_state=lambda _s: None))
+    with ChildScan(dying, 64, state=lambda: None, apply_state=lambda _s: None) as scan, \
+            pytest.raises(RuntimeError, match="exit code 9"):
+        list(scan)
 
 
 def _shared_mappings() -> list[str]:
@@ -86,13 +89,14 @@ def test_stopping_early_ends_the_child_and_frees_the_ring(recordings_dir: Path, 
     mappings_before = _shared_mappings()
     named_before = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
     states = []
-    stream = scanned_in_child(endless, 16, state=lambda: "running", apply_state=states.append)
+    scan = ChildScan(endless, 16, state=lambda: "running", apply_state=states.append)
+    stream = iter(scan)
     first = [next(stream) for _ in range(100)]
     assert [int(s.frame.image[0, 0]) for s in first] == [i % 256 for i in range(100)]  # in order, pixels intact
     assert states == ["running"] * 100
     if Path("/proc/self/maps").exists():
         assert len(_shared_mappings()) == len(mappings_before) + 1  # the ring, while the scan runs
-    stream.close()
+    scan.close()  # what the replay does at its stop rule
     assert multiprocessing.active_children() == []
     assert _shared_mappings() == mappings_before  # the ring is unmapped
     named_after = set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
@@ -172,12 +176,7 @@ def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: 
     # replay's own grey conversion, so the decisions are those of the scan in process.
     from calibcoach.app.scan_stream import ScanStream
 
-    folder = tmp_path / "colour"
-    folder.mkdir()
-    for index in range(40):
-        grey = cv2.imread(str(recordings_dir / "demo_webcam720_careful" / "frames" / f"{index:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        colour = cv2.merge([grey, cv2.add(grey, 9), cv2.subtract(grey, 7)])  # channels differ: grey is a real conversion
-        cv2.imwrite(str(folder / f"{index:04d}.png"), colour)
+    folder = _folder(recordings_dir, tmp_path / "colour", frames=40, colour=True)
     with ScanStream(ImageFolderSource(folder), BoardSpec()) as in_child:
         crossed = list(in_child)
     with ScanStream(ImageFolderSource(folder), BoardSpec(), in_child=False) as in_process:
