@@ -47,10 +47,7 @@ def _png(kind: bytes, body: bytes) -> bytes:
 
 def _handmade(pixels: np.ndarray, filter_type: int) -> bytes:
     """An 8-bit grey PNG whose rows all carry `filter_type` (the bytes stored raw: a wrong filter decodes wrong)."""
-    h, w = pixels.shape
-    rows = np.concatenate([np.full((h, 1), filter_type, np.uint8), pixels], axis=1)
-    return (b"\x89PNG\r\n\x1a\n" + _png(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-            + _png(b"IDAT", zlib.compress(rows.tobytes())) + _png(b"IEND", b""))
+    return _handmade_rows(pixels, np.full(pixels.shape[0], filter_type))
 
 
 @pytest.mark.parametrize("shape", [(720, 1280), (37, 53), (1, 1), (45, 80, 3), (3, 2, 3)])
