@@ -120,8 +120,9 @@ ROW_FUNCTION(unfilter_row_rgb_to_bgr, 3, AT_REVERSED)
  * an add, two compares and three selects in a row), which leaves most of the CPU idle; the second
  * row needs only the first's bytes above and above-left of it, so the two chains run side by
  * side (1.5 -> 0.9 ms on an adaptively filtered 720p frame). libpng's adaptive filtering (PIL,
- * imageio, OpenCV given a compression level) makes most rows Paeth or Average. The filters are loop-invariant, so -O3 unswitches the
- * loop into one specialised loop per pair. RGB rows already hold three chains (one a channel). */
+ * imageio, OpenCV given a compression level) makes most rows Paeth or Average. The filters are
+ * loop-invariant, so -O3 unswitches the loop into one specialised loop per pair. RGB rows already
+ * hold three chains (one a channel). */
 static void unfilter_pair_grey(unsigned char filter0, unsigned char filter1, const unsigned char *restrict f0,
                                const unsigned char *restrict f1, const unsigned char *restrict up,
                                unsigned char *restrict cur0, unsigned char *restrict cur1, Py_ssize_t stride) {

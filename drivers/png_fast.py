@@ -5,10 +5,10 @@ A replay decodes every frame of a folder, and decoding was ~45% of its time: lib
 inflate. ISA-L's inflate (`isal`) does the same in ~1.1-1.6 ms. The row filters are then undone
 by `_png_unfilter.c` (built by `pip install`; pyproject ext-modules), one pass over the rows with
 the GIL released: 720p grey, ~1.4 ms in all for OpenCV's own files (every row "Sub", undone 16
-bytes at a time) instead of 2.7 with NumPy's prefix sums, and 2.8 ms for libpng's adaptive choice (Average and Paeth rows, as
-PIL and OpenCV given a compression level write them) instead of 4.7 by handing the rows back to
-libpng (libpng itself: ~9 ms). The zlib stream's Adler-32 checksum still
-guards the pixels; a damaged file fails to inflate and is left to OpenCV to judge.
+bytes at a time) instead of 2.7 with NumPy's prefix sums, and 2.8 ms for libpng's adaptive
+choice (Average and Paeth rows, as PIL and OpenCV given a compression level write them) instead
+of 4.7 by handing the rows back to libpng (libpng itself: ~9 ms). The zlib stream's Adler-32
+checksum still guards the pixels; a damaged file fails to inflate and is left to OpenCV to judge.
 
 Where the C loop was not built (no compiler at install), Sub rows, each byte stored as the
 difference to the byte one pixel to its left, are undone as a prefix sum along the row by
