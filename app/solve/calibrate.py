@@ -30,6 +30,20 @@ _FISHEYE_BASIN_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 8, 1
 _FISHEYE_OPENCV_VIEWS = 60  # at most this many views go to cv2.fisheye.calibrate in `_solve_fisheye`
 _GOOD_ENOUGH_RMS_PX = 1.0  # a start that fits this well is kept without trying the others
 _FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this order; the best RMS wins
+# Where the reduced bootstrap solves (`solve(..., reduced=True)`) start: Levenberg-Marquardt's
+# starting point, not a fitted value. bench/bootstrap_seeds.py swept it over the bench's lenses
+# (30-150 deg) and the real captures: see bench/results/bootstrap_seeds.md for the basins.
+BOOTSTRAP_SEED_HFOV_DEG = {"pinhole": 70.0, "fisheye": 150.0}
+# From 70 deg the reduced pinhole lands in a wrong basin on narrow lenses: on a 30 deg lens 5 of 9
+# view sets of 6-11 views read 19-28 deg at 2-5x the RMS of the right solution (a 15-20 deg lens:
+# 1.4-4x), while 35 deg lands on every lens of 15-45 deg and lands nowhere the 70 deg start does
+# not on the wider ones (bench/results/bootstrap_seeds.md). So a reading under 50 deg (every
+# narrow lens, right or wrong, and no lens of 60 deg or more) is solved again from 35 deg, and
+# that solve is kept where it fits clearly better: a different basin (RMS under 90% of the first;
+# the same solution reached from two starts differs by far less than 1%).
+_NARROW_READING_DEG = 50.0
+_NARROW_SEED_DEG = 35.0
+_CLEARLY_BETTER = 0.9
 
 
 class RawSolution:
@@ -45,13 +59,15 @@ class RawSolution:
 
 
 def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, initial: CameraModel | None = None,
-          reduced: bool = False) -> RawSolution:
+          reduced: bool = False, seed_hfov_deg: float | None = None) -> RawSolution:
     """Solve intrinsics and per-view poses for `model` from `views` (each with >= 6 corners).
 
     `reduced` solves a well-conditioned subset for the first frames of a capture: one focal length,
     the principal point held at the image centre and only the first radial terms. A full model on
     five far views fits noise (focal lengths of 3000 px for a 950 px lens were seen), and those
     bootstrap intrinsics steer pose estimates, coverage and frame scoring until the data is richer.
+    A reduced solve starts from `seed_hfov_deg` (default `BOOTSTRAP_SEED_HFOV_DEG` of the model;
+    bench/bootstrap_seeds.py sweeps it).
 
     Raises:
         CalibrationError: fewer than 3 views, or the solver failed on this data.
@@ -59,7 +75,7 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
     if len(views) < 3:
         raise CalibrationError(f"a calibration needs at least 3 usable views, got {len(views)}; capture more frames of the board")
     if reduced:
-        return _solve_reduced(views, image_size, model)
+        return _solve_reduced(views, image_size, model, seed_hfov_deg)
     if model == "fisheye":
         return _solve_fisheye(views, image_size, initial)
     # Starts, best first: the caller's guess (the incremental solve), then for the rational model a
@@ -132,10 +148,34 @@ def _checked(sol: RawSolution, n_views: int) -> RawSolution:
     return sol
 
 
-def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: str) -> RawSolution:
-    """The bootstrap solve: fx = fy, centred principal point, k1 k2 only (k1 only on the fisheye)."""
+def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: str,
+                   seed_hfov_deg: float | None = None) -> RawSolution:
+    """The bootstrap solve: fx = fy, centred principal point, k1 k2 only (k1 only on the fisheye).
+
+    From `seed_hfov_deg` alone where given; by default from `BOOTSTRAP_SEED_HFOV_DEG`, and a pinhole
+    that reads a narrow lens is solved again from `_NARROW_SEED_DEG` (see there).
+    """
+    kind = "fisheye" if model == "fisheye" else "pinhole"
+    if seed_hfov_deg is not None or kind == "fisheye":
+        return _solve_reduced_from(views, image_size, model, BOOTSTRAP_SEED_HFOV_DEG[kind] if seed_hfov_deg is None else seed_hfov_deg)
+    try:
+        first = _solve_reduced_from(views, image_size, model, BOOTSTRAP_SEED_HFOV_DEG[kind])
+    except CalibrationError:
+        return _solve_reduced_from(views, image_size, model, _NARROW_SEED_DEG)  # raises in turn when it fails too
+    if first.camera.field_of_view_deg()[0] >= _NARROW_READING_DEG:
+        return first
+    try:
+        second = _solve_reduced_from(views, image_size, model, _NARROW_SEED_DEG)
+    except CalibrationError:
+        return first
+    return second if second.rms_px < _CLEARLY_BETTER * first.rms_px else first
+
+
+def _solve_reduced_from(views: Sequence[View], image_size: tuple[int, int], model: str, seed_hfov_deg: float) -> RawSolution:
+    """One reduced solve (see `_solve_reduced`) from a field-of-view guess."""
+    kind = "fisheye" if model == "fisheye" else "pinhole"
+    seed = CameraModel.from_fov(image_size, seed_hfov_deg, kind)
     if model == "fisheye":
-        seed = CameraModel.from_fov(image_size, 150.0, "fisheye")
         flags = (cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | cv2.CALIB_USE_INTRINSIC_GUESS
                  | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4)
         obj = [np.ascontiguousarray(v.object_points_m, np.float64).reshape(1, -1, 3) for v in views]
@@ -147,7 +187,6 @@ def _solve_reduced(views: Sequence[View], image_size: tuple[int, int], model: st
             raise CalibrationError(f"the bootstrap fisheye solve failed ({_short(exc)})") from None
         camera = CameraModel("fisheye", K, np.asarray(D).reshape(-1), image_size)
     else:
-        seed = CameraModel.from_fov(image_size, 70.0)
         flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_PRINCIPAL_POINT
                  | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3)
         obj = [np.ascontiguousarray(v.object_points_m, np.float32).reshape(-1, 1, 3) for v in views]
