@@ -31,16 +31,19 @@ _FISHEYE_OPENCV_VIEWS = 60  # at most this many views go to cv2.fisheye.calibrat
 _GOOD_ENOUGH_RMS_PX = 1.0  # a start that fits this well is kept without trying the others
 _FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this order; the best RMS wins
 # Where the reduced bootstrap solves (`solve(..., reduced=True)`) start: Levenberg-Marquardt's
-# starting point, not a fitted value. bench/bootstrap_seeds.py swept it over the bench's lenses
-# (30-150 deg) and the real captures: see bench/results/bootstrap_seeds.md for the basins.
+# starting point, not a fitted value. bench/bootstrap_seeds.py swept it over simulated lenses of
+# 20-150 deg and the real captures (bench/results/bootstrap_seeds.md): on every lens of 45 deg and
+# wider the basin around 70 deg held the best solution (narrowest 50-80 deg on the 70 deg webcam,
+# 65-70 on the 115 deg lens), and 150 deg lands for the fisheye model on every lens (narrowest 60-150).
 BOOTSTRAP_SEED_HFOV_DEG = {"pinhole": 70.0, "fisheye": 150.0}
-# From 70 deg the reduced pinhole lands in a wrong basin on narrow lenses: on a 30 deg lens 5 of 9
-# view sets of 6-11 views read 19-28 deg at 2-5x the RMS of the right solution (a 15-20 deg lens:
-# 1.4-4x), while 35 deg lands on every lens of 15-45 deg and lands nowhere the 70 deg start does
-# not on the wider ones (bench/results/bootstrap_seeds.md). So a reading under 50 deg (every
-# narrow lens, right or wrong, and no lens of 60 deg or more) is solved again from 35 deg, and
-# that solve is kept where it fits clearly better: a different basin (RMS under 90% of the first;
-# the same solution reached from two starts differs by far less than 1%).
+# From 70 deg alone the reduced pinhole lands in a wrong basin on narrow lenses (simulated view sets
+# of 6-11 views: a 30 deg lens missed on 21 of 45, up to 53% off, at 2-5x the right solution's
+# RMS; a 20 deg lens on 31 of 45), while on lenses of 15-45 deg the 35 deg start's basin holds the
+# right solution (bench/results/bootstrap_seeds.md). So a reading under 50 deg (every narrow lens,
+# right or wrong; no lens of 60 deg or more reads that) is solved again from 35 deg, and that solve
+# is kept where it fits clearly better, i.e. is another basin (RMS under 90% of the first; one
+# solution reached from two starts differs by far less). Worst f error on careful and sloppy view
+# sets: 30 deg lens 53% -> 1.4%, 20 deg 956% -> 4.5%; lenses of 70 deg and wider: the same solve.
 _NARROW_READING_DEG = 50.0
 _NARROW_SEED_DEG = 35.0
 _CLEARLY_BETTER = 0.9
