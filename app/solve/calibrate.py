@@ -35,7 +35,7 @@ _FISHEYE_SEED_HFOV_DEG = (150.0, 120.0, 180.0, 95.0, 210.0)  # tried in this ord
 # 20-150 deg and the real captures (bench/results/bootstrap_seeds.md): on every lens of 45 deg and
 # wider the basin around 70 deg held the best solution (narrowest 50-80 deg on the 70 deg webcam,
 # 65-70 on the 115 deg lens), and 150 deg lands for the fisheye model on every lens it is asked of
-# (narrowest 60-150; it misses only on lenses under 25 deg, where a narrow pinhole fit skips it).
+# (narrowest 60-150; it misses only on lenses of ~25 deg and narrower, where a narrow pinhole fit skips it).
 BOOTSTRAP_SEED_HFOV_DEG = {"pinhole": 70.0, "fisheye": 150.0}
 # From 70 deg alone the reduced pinhole lands in a wrong basin on narrow lenses (simulated view sets
 # of 6-11 views: a 30 deg lens missed on 21 of 45, up to 53% off, at 2-5x the right solution's
