@@ -89,7 +89,9 @@ def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) 
     from calibcoach.coverage.select import SelectorSettings
 
     photos = not live and info.kind == "folder"  # a folder handed to `calibrate` is a set of photos
+    guess = {} if getattr(args, "fov", None) is None else {"hfov_guess_deg": args.fov}
     return SessionSettings(
+        **guess,
         model=args.model,
         selector=SelectorSettings(max_frames=args.max_frames, keep_all_usable=photos_within_budget(args, info, live=live)),
         stop_when_done=not args.no_stop,

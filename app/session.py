@@ -93,8 +93,10 @@ class CalibrationSession(SessionFinish):
         self.board = board
         self.image_size = image_size
         self.geometry = BoardGeometry.of(board)
-        self.camera = CameraModel.from_fov(image_size, self.settings.hfov_guess_deg)
-        self._guess_lens: CameraModel | None = None  # see detection_lens
+        guess = self.settings.hfov_guess_deg
+        # before the first solve: the field-of-view guess, an equidistant fisheye from _FISHEYE_GUESS_DEG on
+        # (a pinhole cannot reach 90 deg off axis at all; the rendered 150 deg lens: 484 px against the guess's 489)
+        self.camera = CameraModel.from_fov(image_size, guess, "fisheye" if guess >= _FISHEYE_GUESS_DEG else "pinhole")
         self.selector = FrameSelector(image_size, squares_x=board.squares_x, settings=self.settings.selector,
                                       coverage=CoverageMap(image_size, self.settings.coverage,
                                                            ranges=ranges_for(self.camera, self.geometry)))
@@ -138,19 +140,9 @@ class CalibrationSession(SessionFinish):
 
     @property
     def detection_lens(self) -> CameraModel:
-        """The lens estimate to re-detect frames with (coverage/redetect.py).
-
-        The latest solve once there is one. Before it, the field-of-view guess, as an equidistant
-        fisheye from `_FISHEYE_GUESS_DEG` on: a pinhole cannot reach 90 deg off axis at all, and
-        an equidistant profile is within a few percent of real fisheye lenses (the rendered
-        150 deg lens: 484 px against the guess's 489 px).
-        """
-        if self.noise_px is not None:  # set by every incremental solve, with self.camera
-            return self.camera
-        if self._guess_lens is None:
-            hfov = self.settings.hfov_guess_deg
-            self._guess_lens = CameraModel.from_fov(self.image_size, hfov, "fisheye" if hfov >= _FISHEYE_GUESS_DEG else "pinhole")
-        return self._guess_lens
+        """The lens estimate to re-detect frames with (coverage/redetect.py): the latest solve, or
+        before it the field-of-view guess (`SessionSettings.hfov_guess_deg`, --fov)."""
+        return self.camera
 
     def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool) -> None:
         """Frames a replay tracked through a hold instead of detecting them (app/scan.py).

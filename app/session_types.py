@@ -24,7 +24,9 @@ from calibcoach.drivers.lens import CameraModel
 class SessionSettings:
     model: str = "auto"  # "auto" | "pinhole" | "rational" | "fisheye"
     selector: SelectorSettings = field(default_factory=SelectorSettings)
-    hfov_guess_deg: float = 70.0  # bootstrap intrinsics for pose estimates before the first solve
+    # The lens before the first solve (--fov): poses, ranges and candidates, and the fisheye-aware re-detection
+    # (an equidistant fisheye from 120 deg on). 70 deg: a webcam; a wrong guess costs only the first frames' guidance.
+    hfov_guess_deg: float = 70.0
     stop_when_done: bool = True
     error_target_px: float | None = None  # stop rule's E target; None = derived from the corner noise (verdict.py)
     coverage: CoverageRequirements = field(default_factory=CoverageRequirements)

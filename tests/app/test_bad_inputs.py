@@ -42,6 +42,7 @@ CASES = [
     ("calibrate {demo} --squares 1x11", "at least 2x2"),
     ("calibrate {demo} --marker-mm 40 --square-mm 30", "smaller than the square size"),
     ("calibrate {demo} --max-frames 0", "pass at least 15"),
+    ("calibrate {demo} --fov 500", "pass 10-240"),
     ("calibrate {demo} --dictionary DICT_7X7_9", "unknown ArUco dictionary"),
     ("calibrate {tmp}/nowhere", "does not exist"),
     ("calibrate {noise}", "no ArUco markers"),

@@ -219,3 +219,27 @@ def test_the_command_reuses_freed_frame_sized_blocks_instead_of_faulting_them_in
         assert faults_a_frame < 50, f"{faults_a_frame:.0f} page faults a frame: freed frames were not reused"
     else:
         assert faults_a_frame > 150, f"{faults_a_frame:.0f} page faults a frame with glibc's defaults: the test measures nothing"
+
+
+@pytest.mark.parametrize("command", ["calibrate", "live"])
+@pytest.mark.parametrize(("fov", "model", "distance_m"), [(None, "pinhole", 0.74), ("30", "pinhole", 1.93), ("150", "fisheye", 0.40)])
+def test_fov_is_the_lens_the_first_guidance_is_for(command: str, fov: str | None, model: str, distance_m: float) -> None:
+    """--fov sets the lens before the first solve: the first pose's range, and an equidistant fisheye from 120 deg.
+
+    The first pose asks for the board at mid range (a frontal board over ~52% of the image height). Told
+    0.74 m as for a 70 deg webcam, a person with a 30 deg lens would hold the board where it spans 1.5x
+    the image height; at 1.93 m it spans 57%.
+    """
+    from calibcoach.app.cli import build_parser
+    from calibcoach.app.commands import session_settings
+    from calibcoach.app.session import CalibrationSession
+    from calibcoach.coverage.board import BoardSpec
+    from calibcoach.drivers.base import SourceInfo
+
+    source = "recording" if command == "calibrate" else "--source=sim"
+    args = build_parser().parse_args([command, source, "--out", "o", *([] if fov is None else ["--fov", fov])])
+    settings = session_settings(args, SourceInfo("a video", "video", image_size=(1280, 720)), live=command == "live")
+    session = CalibrationSession(BoardSpec(), (1280, 720), settings)
+    assert session.camera.model == model and session.detection_lens is session.camera
+    target = session.guide.guidance(done=False).target
+    assert target is not None and target.distance_m == pytest.approx(distance_m, rel=0.02)
