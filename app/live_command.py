@@ -10,7 +10,14 @@ from pathlib import Path
 from typing import Any
 
 from calibcoach.app.assistant import step_record
-from calibcoach.app.commands import board_for_source, error_words, keep_serving, open_viewer, session_settings
+from calibcoach.app.commands import (
+    board_for_source,
+    error_words,
+    fov_hint,
+    keep_serving,
+    open_viewer,
+    session_settings,
+)
 from calibcoach.app.live import LiveStats, PacedSource, run_live
 from calibcoach.app.outputs.report import untrusted_name, write_session_outputs
 from calibcoach.app.progress import SolveStages
@@ -208,6 +215,9 @@ def _finish_live(args: argparse.Namespace, argv: list[str], info: Any, session: 
           f"wrote {', '.join(p.name for p in written)} to {args.out}")
     for reason in result.verdict.reasons:
         print(f"  - {reason}")
+    hint = fov_hint(cal.camera, args.fov)
+    if hint:
+        print(f"calibcoach: {hint}", file=sys.stderr)
     keep_serving(viewer)
     return 0 if result.verdict.trusted else 3
 

@@ -23,7 +23,7 @@ from calibcoach.app.session_finish import (
     frame_view,
     view_detection,
 )
-from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings
+from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings, lens_guess
 from calibcoach.app.session_types import SessionResult as SessionResult  # re-exported: what finish() returns
 from calibcoach.app.solve.calibrate import poses_for_views, solve
 from calibcoach.app.solve.model_choice import pinhole_sees_narrow_lens
@@ -76,7 +76,6 @@ _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 
 _LENS_MOVED_PX = 2.0
 _FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
-_FISHEYE_GUESS_DEG = 120.0  # a field-of-view guess this wide is taken as a fisheye (model_choice's fisheye limit)
 
 
 class CalibrationSession(SessionFinish):
@@ -93,10 +92,7 @@ class CalibrationSession(SessionFinish):
         self.board = board
         self.image_size = image_size
         self.geometry = BoardGeometry.of(board)
-        guess = self.settings.hfov_guess_deg
-        # before the first solve: the field-of-view guess, an equidistant fisheye from _FISHEYE_GUESS_DEG on
-        # (a pinhole cannot reach 90 deg off axis at all; the rendered 150 deg lens: 484 px against the guess's 489)
-        self.camera = CameraModel.from_fov(image_size, guess, "fisheye" if guess >= _FISHEYE_GUESS_DEG else "pinhole")
+        self.camera = lens_guess(image_size, self.settings.hfov_guess_deg)  # until the first solve
         self.selector = FrameSelector(image_size, squares_x=board.squares_x, settings=self.settings.selector,
                                       coverage=CoverageMap(image_size, self.settings.coverage,
                                                            ranges=ranges_for(self.camera, self.geometry)))

@@ -19,6 +19,15 @@ from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.select import Decision, SelectorSettings
 from calibcoach.drivers.lens import CameraModel
 
+FISHEYE_GUESS_DEG = 120.0  # a field-of-view guess this wide is taken as a fisheye (model_choice's fisheye limit)
+
+
+def lens_guess(image_size: tuple[int, int], hfov_deg: float) -> CameraModel:
+    """The lens before the first solve: the field-of-view guess, as an equidistant fisheye from
+    `FISHEYE_GUESS_DEG` on (a pinhole cannot reach 90 deg off axis at all; on the rendered 150 deg
+    lens the equidistant guess's 489 px against the true 484)."""
+    return CameraModel.from_fov(image_size, hfov_deg, "fisheye" if hfov_deg >= FISHEYE_GUESS_DEG else "pinhole")
+
 
 @dataclass(frozen=True, slots=True)
 class SessionSettings:
