@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 
 from calibcoach.app.scan import HeldFrameScan, Seen
 from calibcoach.app.scan_process import ChildScan, fork_available
@@ -65,13 +64,6 @@ def _settled_spec(detector: CharucoBoardDetector) -> BoardSpec:
     return detector.spec.with_detected(legacy=bool(detector.spec.legacy), inverted=bool(detector.spec.inverted))
 
 
-@dataclass
-class _ChildCounts:
-    """What the scan in the child process counted, as it last said."""
-
-    tracked: int = 0
-
-
 class ScanStream:
     """Every frame of `source` with its detection, in order: iterate once, then `close()` (or use `with`).
 
@@ -87,7 +79,7 @@ class ScanStream:
         self.started_at = time.perf_counter()  # the replay's reading time counts from here
         self.settle = CharucoBoardDetector(board)
         self._scans: list[HeldFrameScan] = []  # the scan when it runs in process (a child keeps its own)
-        self._counts = _ChildCounts()
+        self._tracked_in_child = 0  # the child's count of tracked frames, as it last said
         frame_bytes = 3 * info.image_size[0] * info.image_size[1] if info.image_size is not None else 0
         self.in_child = info.kind in TRACKED_KINDS and bool(frame_bytes) and in_child and fork_available()
         self._stream: ChildScan | Iterator[Seen]
@@ -100,8 +92,8 @@ class ScanStream:
     def _start_child(self, source: FrameSource, board: BoardSpec, frame_bytes: int, *, workers: int,
                      every_frame: bool) -> ChildScan:
         """`detected_frames` in a child process; the print's variant, the scan's counts and the source's
-        unreadable frames are mirrored into `settle`, the counts and `source.skipped` as they come."""
-        settle, counts = self.settle, self._counts
+        unreadable frames are mirrored into `settle`, `tracked` and `source.skipped` as they come."""
+        settle = self.settle
         scans: list[HeldFrameScan] = []  # the child's scan, in the child
 
         def make_seen() -> Iterator[Seen]:  # runs in the child, on its copies of source and settle
@@ -112,7 +104,7 @@ class ScanStream:
             return variant, sum(scan.tracked for scan in scans), list(source.skipped)
 
         def apply_state(child_state: tuple) -> None:  # in the parent
-            variant, counts.tracked, source.skipped = child_state
+            variant, self._tracked_in_child, source.skipped = child_state
             if variant is not None and not settle.settled:
                 settle.settle(legacy=variant[0], inverted=variant[1])
 
@@ -121,7 +113,7 @@ class ScanStream:
     @property
     def tracked(self) -> int:
         """Frames whose held board was tracked from the frame before, so far."""
-        return self._counts.tracked if self.in_child else sum(scan.tracked for scan in self._scans)
+        return self._tracked_in_child if self.in_child else sum(scan.tracked for scan in self._scans)
 
     def __iter__(self) -> Iterator[Seen]:
         return iter(self._stream)
