@@ -105,23 +105,19 @@ def fov_hint(camera: CameraModel, given_deg: float | None) -> str:
 
     The guess sets the first guidance's ranges (`SessionSettings.hfov_guess_deg`, `lens_guess`): a
     focal length more than 25% from the guess's asks for the board noticeably too near or too far
-    at first. The value suggested is the guess with this lens's focal length (a distortion-free
-    lens's field of view, an equidistant one for a fisheye), so passing it silences the hint; for a
-    strongly distorted wide lens that is less than its datasheet says.
+    at first. The value suggested is the guess with this lens's focal length (`guess_for_focal`: a
+    distortion-free lens's field of view, an equidistant one for a fisheye), so passing it silences
+    the hint; for a strongly distorted wide lens that is less than its datasheet says.
     """
     import math
 
-    from calibcoach.app.session_types import FISHEYE_GUESS_DEG, SessionSettings, lens_guess
+    from calibcoach.app.session_types import SessionSettings, guess_for_focal, lens_guess
 
     guess = SessionSettings().hfov_guess_deg if given_deg is None else given_deg
     assumed = lens_guess(camera.image_size, guess).fx
     if not (math.isfinite(camera.fx) and camera.fx > 0) or abs(math.log(camera.fx / assumed)) < math.log(1.25):
         return ""
-    w = camera.image_size[0]
-    if camera.model == "fisheye":
-        same_focal = math.degrees(w / camera.fx)  # equidistant: half the width at (w / 2) / f radians
-    else:
-        same_focal = min(math.degrees(2.0 * math.atan(w / (2.0 * camera.fx))), FISHEYE_GUESS_DEG - 1.0)
+    same_focal = guess_for_focal(camera.image_size, camera.fx, fisheye=camera.model == "fisheye")
     return (f"the first guidance assumed a {guess:.0f} deg lens (f {assumed:.0f} px) and this one has f {camera.fx:.0f} px; "
             f"pass --fov {same_focal:.0f} next time and it fits the lens from the first frame")
 

@@ -6,6 +6,7 @@ the replay and live loops, the viewer, the outputs and the embedding API.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,21 @@ def lens_guess(image_size: tuple[int, int], hfov_deg: float) -> CameraModel:
     `FISHEYE_GUESS_DEG` on (a pinhole cannot reach 90 deg off axis at all; on the rendered 150 deg
     lens the equidistant guess's 489 px against the true 484)."""
     return CameraModel.from_fov(image_size, hfov_deg, "fisheye" if hfov_deg >= FISHEYE_GUESS_DEG else "pinhole")
+
+
+def guess_for_focal(image_size: tuple[int, int], fx: float, *, fisheye: bool) -> float:
+    """The field-of-view guess whose `lens_guess` has focal length `fx` (px): `lens_guess` inverted.
+
+    Two guesses can share a focal length, an equidistant fisheye's and a distortion-free lens's;
+    the fisheye's is taken for a `fisheye` lens where `lens_guess` reads it as one (from
+    `FISHEYE_GUESS_DEG` on), else the distortion-free one, which it reads as such below that.
+    """
+    half_width = image_size[0] / 2.0
+    equidistant = math.degrees(2.0 * half_width / fx)
+    distortion_free = math.degrees(2.0 * math.atan(half_width / fx))
+    if fisheye and equidistant >= FISHEYE_GUESS_DEG:
+        return equidistant
+    return distortion_free if distortion_free < FISHEYE_GUESS_DEG else equidistant
 
 
 @dataclass(frozen=True, slots=True)

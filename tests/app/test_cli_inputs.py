@@ -248,14 +248,17 @@ def test_fov_is_the_lens_the_first_guidance_is_for(command: str, fov: str | None
 @pytest.mark.parametrize(("lens", "given", "says"), [("tele30", None, "--fov 30"), ("webcam720", None, ""),
                                                       ("webcam720", 72.0, ""), ("fisheye150", None, "--fov 152"),
                                                       ("fisheye150", 150.0, ""), ("webcam720", 150.0, "--fov 68"),
-                                                      ("wide720", None, "--fov 89")])
+                                                      ("wide720", None, "--fov 89"), ("fisheye110", None, "--fov 88")])
 def test_live_suggests_fov_when_the_lens_read_far_from_the_guess(lens: str, given: float | None, says: str) -> None:
     """Said where the solved focal length is 25% or more from the guess's; the value it names silences it."""
     from calibcoach.app.commands import fov_hint
     from calibcoach.app.session_types import lens_guess
+    from calibcoach.drivers.lens import CameraModel
     from calibcoach.drivers.sim import LENSES
 
-    camera = lens_guess((1280, 720), 30.0) if lens == "tele30" else LENSES[lens]
+    # fisheye110: a fisheye model whose equidistant reading, under 120 deg, no --fov gives as a fisheye
+    camera = {"tele30": lens_guess((1280, 720), 30.0),
+              "fisheye110": CameraModel.from_fov((1280, 720), 110.0, "fisheye")}.get(lens) or LENSES[lens]
     hint = fov_hint(camera, given)
     if not says:
         assert hint == ""
