@@ -58,7 +58,10 @@ def plain_loop(source: list[Path] | Path, spec: BoardSpec) -> tuple[float, int]:
             o, i = board.matchImagePoints(corners, ids)
             obj.append(o.reshape(-1, 1, 3))
             img.append(i.reshape(-1, 1, 2))
-    cv2.calibrateCamera(obj, img, size, None, None)
+    try:
+        cv2.calibrateCamera(obj, img, size, None, None)
+    except cv2.error:
+        pass  # a degenerate frame (messy footage) defeats OpenCV's initialisation: the loop still spent the time
     return time.perf_counter() - start, len(obj)
 
 

@@ -10,21 +10,27 @@ opened and raised as `SourceError` with one sentence saying what was found and w
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections import Counter, deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import closing
+from functools import partial
 from pathlib import Path
 from types import MappingProxyType
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
+from calibcoach.drivers.avi_mjpg import MjpgIndex, decode_packet, mjpg_index, read_packet
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.recording import SESSION_FILE, read_session
 
+T = TypeVar("T")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 _VIDEO_EXTENSIONS = (".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")  # for hints only
 _DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
@@ -65,11 +71,14 @@ def open_source(spec: str | Path) -> FrameSource:
 
 
 class VideoFileSource(FrameSource):
-    """Frames of a video file, as OpenCV's VideoCapture decodes them: (H, W, 3) uint8 BGR.
+    """Frames of a video file: (H, W, 3) uint8 BGR.
 
-    A frame that fails to decode costs its index and is reported in `skipped`; after
-    `max_consecutive_failures` failures in a row the rest of the file is taken to be damaged and
-    reading stops, with one `skipped` entry saying so (a broken tail would otherwise be read for ever).
+    A Motion-JPEG AVI (what webcams record) is read straight from its container and its JPEGs
+    decoded by libjpeg on two threads (drivers/avi_mjpg.py); any other video by OpenCV's
+    VideoCapture (FFmpeg). A frame that fails to decode costs its index and is reported in
+    `skipped`; after `max_consecutive_failures` failures in a row the rest of the file is taken
+    to be damaged and reading stops, with one `skipped` entry saying so (a broken tail would
+    otherwise be read for ever).
     """
 
     def __init__(self, path: str | Path, *, max_consecutive_failures: int = 25) -> None:
@@ -81,6 +90,11 @@ class VideoFileSource(FrameSource):
             raise SourceError(f"{self.path} is not a file; pass a video file")
         if self.path.stat().st_size == 0:
             raise SourceError(f"{self.path} is empty (0 bytes); the copy or recording probably failed, so copy it again")
+        self._mjpg = self._mjpg_index()
+        if self._mjpg is not None:
+            self._fps, self._image_size = self._mjpg.fps, self._mjpg.image_size
+            self._frame_count: int | None = len(self._mjpg.packets) + self._mjpg.cut_off
+            return
         probe = self._open()
         try:
             first = None
@@ -101,6 +115,18 @@ class VideoFileSource(FrameSource):
         self._fps = float(fps) if math.isfinite(fps) and fps > 0 else None
         self._frame_count = int(count) if math.isfinite(count) and count > 0 else None
         self._image_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) pixels
+
+    def _mjpg_index(self) -> MjpgIndex | None:
+        """The file's MJPG frames when libjpeg decodes them at the announced size (else VideoCapture reads it)."""
+        index = mjpg_index(self.path) if hasattr(os, "pread") else None
+        if index is None:
+            return None
+        with open(self.path, "rb") as file:
+            for packet in index.packets[: self._max_failures]:  # the first frame that decodes, as VideoCapture's probe
+                image = decode_packet(read_packet(file.fileno(), packet))
+                if image is not None:
+                    return index if (image.shape[1], image.shape[0]) == index.image_size else None
+        return None  # none decodes here: VideoCapture judges the file (and says so if it fails too)
 
     def _open(self) -> cv2.VideoCapture:
         capture = cv2.VideoCapture(str(self.path))
@@ -123,31 +149,59 @@ class VideoFileSource(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         self.skipped = []
-        capture = self._capture = self._open()
-        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
         failed: list[int] = []  # indices of the current run of undecodable frames
-        index, previous_ns = 0, -1
-        try:
-            while True:
-                ok, image = capture.read()  # image: (H, W, 3) uint8 BGR
-                if not ok or image is None:
-                    if self._frame_count is not None and index >= self._frame_count:
-                        break  # the end the header announced
+        with closing(self._unpacked() if self._mjpg is not None else self._captured()) as decoded:
+            for index, image, timestamp_ns in decoded:
+                if image is None:
                     failed.append(index)
-                    index += 1
                     if len(failed) >= self._max_failures:
                         # With no frame count a normal end looks the same, so only a known count is reported.
                         if self._frame_count is not None:
                             self.skipped.append(SkippedFrame(failed[0], "", (
                                 f"frames {failed[0]}-{failed[-1]} failed to decode in a row, so reading stopped; "
                                 f"the header announces {self._frame_count} frames, the rest of the file is damaged")))
-                        break
+                        return
                     continue
                 self.skipped += [SkippedFrame(i, "", "frame could not be decoded (damaged video data)") for i in failed]
                 failed.clear()
-                timestamp_ns = self._timestamp_ns(capture, index, previous_ns, period_ns)
                 yield Frame(index=index, timestamp_ns=timestamp_ns, image=image)
-                previous_ns = timestamp_ns
+        if self._mjpg is not None and self._mjpg.cut_off:
+            cut = len(self._mjpg.packets)
+            self.skipped.append(SkippedFrame(cut, "", (
+                f"the file ends inside frame {cut}, so it was cut off (copied or recorded incompletely); "
+                "the frames before it are read")))
+
+    def _unpacked(self) -> Iterator[tuple[int, np.ndarray | None, int]]:
+        """(index, BGR image or None, timestamp) of every MJPG frame, decoded ahead on worker threads."""
+        index = self._mjpg
+        assert index is not None
+        period_ns = 1e9 / (index.fps or _DEFAULT_FPS)
+        ahead = frames_ahead(3 * index.image_size[0] * index.image_size[1])
+        fd = os.open(self.path, os.O_RDONLY)
+        images = _decoded_ahead(index.packets, lambda packet: decode_packet(read_packet(fd, packet)), ahead=ahead)
+        try:
+            for i, image in enumerate(images):
+                yield i, image, round(i * period_ns)
+        finally:
+            images.close()  # its decodes finish before the file they read is closed
+            os.close(fd)
+
+    def _captured(self) -> Iterator[tuple[int, np.ndarray | None, int]]:
+        """(index, BGR image or None, timestamp) of every frame VideoCapture reads, up to the end it announces."""
+        capture = self._capture = self._open()
+        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
+        index, previous_ns = 0, -1
+        try:
+            while True:
+                ok, image = capture.read()  # image: (H, W, 3) uint8 BGR
+                if not ok or image is None:
+                    if self._frame_count is not None and index >= self._frame_count:
+                        return  # the end the header announced
+                    yield index, None, 0
+                else:
+                    timestamp_ns = self._timestamp_ns(capture, index, previous_ns, period_ns)
+                    yield index, image, timestamp_ns
+                    previous_ns = timestamp_ns
                 index += 1
         finally:
             capture.release()
@@ -217,7 +271,8 @@ class ImageFolderSource(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         self.skipped = []
-        for index, image in enumerate(_decoded_ahead(self._files, ahead=frames_ahead(self._frame_bytes), fast_png=self._fast_png)):
+        for index, image in enumerate(_decoded_ahead(
+                self._files, partial(_read_image, fast_png=self._fast_png), ahead=frames_ahead(self._frame_bytes))):
             item = self._frame_or_skip(index, image)
             if isinstance(item, SkippedFrame):
                 self.skipped.append(item)
@@ -291,7 +346,8 @@ class RecordingSource(FrameSource):
         fast_png = decoded is not None and _fast_png_decodes(first, decoded)
         ahead = frames_ahead(3 * self._image_size[0] * self._image_size[1])
         for entry, path, image in zip(self._contents.entries, paths,
-                                      _decoded_ahead(paths, cv2.IMREAD_UNCHANGED, ahead=ahead, fast_png=fast_png), strict=True):
+                                      _decoded_ahead(
+                                          paths, partial(_read_image, flags=cv2.IMREAD_UNCHANGED, fast_png=fast_png), ahead=ahead), strict=True):
             if image is None:
                 self.skipped.append(SkippedFrame(entry["index"], path.name, _unreadable_reason(path)))
                 continue
@@ -317,18 +373,20 @@ def _natural_key(path: Path) -> tuple[tuple[tuple[int, int | str], ...], str]:
 _DECODE_WORKERS = 2  # decoding releases the GIL; a 720p PNG takes ~5 ms in OpenCV, ~2.9 ms in png_fast
 
 
-def _decoded_ahead(paths: list[Path], flags: int = _IMREAD_FLAGS, *, ahead: int = 8,
-                   fast_png: bool = False) -> Iterator[np.ndarray | None]:
-    """`_read_image` of every path, in order, decoded on worker threads `ahead` frames ahead.
+def _decoded_ahead(items: Sequence[T], decode: Callable[[T], np.ndarray | None], *,
+                   ahead: int = 8) -> Iterator[np.ndarray | None]:
+    """`decode(item)` of every item (a file, a video frame's place in its file), in order, run on
+    worker threads `ahead` items ahead.
 
     Replay is otherwise bound by decoding on the consumer's thread (half of a 784-frame replay's
-    time was imdecode); the consumer never waits once the pipeline is full.
+    time was imdecode); the consumer never waits once the pipeline is full. Closing the iterator
+    waits for the decodes already running (the pool's exit), so what they read can be closed after.
     """
     with ThreadPoolExecutor(max_workers=_DECODE_WORKERS, thread_name_prefix="decode") as pool:
         pending: deque[Future[np.ndarray | None]] = deque()
         try:
-            for path in paths:
-                pending.append(pool.submit(_read_image, path, flags, fast_png=fast_png))
+            for item in items:
+                pending.append(pool.submit(decode, item))
                 if len(pending) >= ahead:
                     yield pending.popleft().result()
             while pending:

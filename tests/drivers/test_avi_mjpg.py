@@ -1,0 +1,148 @@
+"""Motion-JPEG AVIs read from their container: the same frames VideoCapture gives, and the odd files.
+
+Files come from cv2.VideoWriter, and where a case needs what it never writes (JPEGs without
+Huffman tables, OpenDML's second RIFF chunk, a dropped frame) they are assembled here chunk by chunk.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.drivers.avi_mjpg import mjpg_index
+from calibcoach.drivers.base import SkippedFrame
+from calibcoach.drivers.replay import VideoFileSource
+
+WIDTH, HEIGHT, FPS = 64, 48, 15
+
+
+def _textured(i: int) -> np.ndarray:
+    """Frame i: smooth colour gradients plus a white square that moves, so decoders' rounding shows and frames differ."""
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    image = np.stack([30 + 2 * x + i, 40 + 3 * y, 100 + x + y], axis=2).astype(np.uint8)
+    image[10:20, 5 + 3 * i:15 + 3 * i] = 255
+    return image
+
+
+def _written(path: Path, count: int, fourcc: str = "MJPG") -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), FPS, (WIDTH, HEIGHT))
+    if not writer.isOpened():
+        pytest.skip(f"this OpenCV build cannot write {fourcc} into {path.suffix}")
+    for i in range(count):
+        writer.write(_textured(i))
+    writer.release()
+    return path
+
+
+def _jpeg(i: int, *, huffman_tables: bool = True) -> bytes:
+    data = cv2.imencode(".jpg", _textured(i))[1].tobytes()
+    if huffman_tables:
+        return data
+    # Drop the DHT segments, as webcams' MJPG does (AVI1): decoders then use the standard tables,
+    # which are the ones OpenCV's encoder wrote.
+    kept, at = bytearray(data[:2]), 2
+    while data[at + 1] != 0xDA:  # segments up to the start of scan
+        length = int.from_bytes(data[at + 2:at + 4], "big")
+        if data[at + 1] != 0xC4:
+            kept += data[at:at + 2 + length]
+        at += 2 + length
+    return bytes(kept + data[at:])
+
+
+def _chunk(fourcc: bytes, body: bytes) -> bytes:
+    return fourcc + struct.pack("<I", len(body)) + body + b"\0" * (len(body) % 2)
+
+
+def _list(kind: bytes, form: bytes, *chunks: bytes) -> bytes:
+    return _chunk(kind, form + b"".join(chunks))
+
+
+def _avi(frames: list[bytes], *, extension: list[bytes] | None = None, codec: bytes = b"MJPG") -> bytes:
+    """An AVI of one video stream holding `frames` as '00dc' chunks; `extension`: more in an OpenDML 'AVIX' chunk."""
+    avih = struct.pack("<14I", round(1e6 / FPS), 0, 0, 0x10, len(frames), 0, 1, 0, WIDTH, HEIGHT, 0, 0, 0, 0)
+    strh = b"vids" + codec + struct.pack("<IHHIIIIIIIIhhhh", 0, 0, 0, 0, 1, FPS, 0, len(frames), 0, 0xFFFFFFFF, 0,
+                                         0, 0, WIDTH, HEIGHT)
+    strf = struct.pack("<IiiHH4sIiiII", 40, WIDTH, HEIGHT, 1, 24, codec, WIDTH * HEIGHT * 3, 0, 0, 0, 0)
+    header = _list(b"LIST", b"hdrl", _chunk(b"avih", avih), _list(b"LIST", b"strl", _chunk(b"strh", strh), _chunk(b"strf", strf)))
+    movi = _list(b"LIST", b"movi", *(_chunk(b"00dc", f) for f in frames))
+    data = _list(b"RIFF", b"AVI ", header, movi)
+    if extension is not None:
+        data += _list(b"RIFF", b"AVIX", _list(b"LIST", b"movi", *(_chunk(b"00dc", f) for f in extension)))
+    return data
+
+
+def _frames(path: Path) -> tuple[VideoFileSource, list]:
+    source = VideoFileSource(path)
+    with source:
+        return source, list(source)
+
+
+def test_frames_match_videocaptures(tmp_path: Path) -> None:
+    path = _written(tmp_path / "clip.avi", 12)
+    index = mjpg_index(path)
+    assert index is not None and len(index.packets) == 12 and index.fps == FPS and index.image_size == (WIDTH, HEIGHT)
+    source, frames = _frames(path)
+    capture = cv2.VideoCapture(str(path))
+    reference = [capture.read()[1] for _ in range(12)]
+    assert [f.index for f in frames] == list(range(12)) and source.skipped == []
+    assert source.info.description == f"video file clip.avi ({WIDTH}x{HEIGHT}, {FPS} fps, 12 frames)"
+    assert [f.timestamp_ns for f in frames] == pytest.approx([i * 1e9 / FPS for i in range(12)], abs=1e3)
+    for frame, expected in zip(frames, reference, strict=True):
+        assert frame.image.shape == expected.shape and frame.image.dtype == np.uint8
+        # libjpeg against FFmpeg: another IDCT and colour rounding, a level or so in the grey the
+        # detector reads, a little more in colour at the square's sharp edges; never another picture
+        assert np.abs(frame.grey().astype(int) - cv2.cvtColor(expected, cv2.COLOR_BGR2GRAY)).mean() < 1.5
+        assert np.abs(frame.image.astype(int) - expected).mean() < 3.0
+    assert np.abs(frames[0].image.astype(int) - frames[11].image).mean() > 3.0  # the frames themselves differ more
+
+
+def test_other_codecs_are_read_by_videocapture(tmp_path: Path) -> None:
+    path = _written(tmp_path / "clip.mp4", 6, fourcc="mp4v")
+    assert mjpg_index(path) is None
+    source, frames = _frames(path)
+    assert [f.index for f in frames] == list(range(6)) and frames[0].image.shape == (HEIGHT, WIDTH, 3)
+
+
+def test_jpegs_without_huffman_tables_decode_as_with_them(tmp_path: Path) -> None:
+    (tmp_path / "full.avi").write_bytes(_avi([_jpeg(i) for i in range(4)]))
+    (tmp_path / "bare.avi").write_bytes(_avi([_jpeg(i, huffman_tables=False) for i in range(4)]))
+    assert len(_jpeg(0, huffman_tables=False)) < len(_jpeg(0)) - 300  # the tables are really gone
+    _, full = _frames(tmp_path / "full.avi")
+    _, bare = _frames(tmp_path / "bare.avi")
+    assert len(full) == len(bare) == 4
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(full, bare, strict=True))
+
+
+def test_opendml_extension_is_read_after_the_first_riff(tmp_path: Path) -> None:
+    path = tmp_path / "long.avi"
+    path.write_bytes(_avi([_jpeg(i) for i in range(3)], extension=[_jpeg(i) for i in range(3, 6)]))
+    assert len(mjpg_index(path).packets) == 6  # type: ignore[union-attr]
+    _, frames = _frames(path)
+    expected = [cv2.imdecode(np.frombuffer(_jpeg(i), np.uint8), cv2.IMREAD_COLOR) for i in range(6)]
+    assert [f.index for f in frames] == list(range(6))
+    assert all(np.array_equal(f.image, e) for f, e in zip(frames, expected, strict=True))
+
+
+def test_a_dropped_frame_or_another_codec_leaves_the_file_to_videocapture(tmp_path: Path) -> None:
+    dropped = tmp_path / "dropped.avi"
+    dropped.write_bytes(_avi([_jpeg(0), b"", _jpeg(2)]))
+    assert mjpg_index(dropped) is None
+    other = tmp_path / "other.avi"
+    other.write_bytes(_avi([_jpeg(0)], codec=b"XVID"))
+    assert mjpg_index(other) is None
+    assert mjpg_index(tmp_path / "missing.avi") is None
+
+
+def test_a_file_cut_off_inside_a_frame_keeps_the_frames_before_it(tmp_path: Path) -> None:
+    path = _written(tmp_path / "clip.avi", 10)
+    index = mjpg_index(path)
+    offset, length = index.packets[7]  # type: ignore[union-attr]
+    path.write_bytes(path.read_bytes()[: offset + length // 2])
+    source, frames = _frames(path)
+    assert [f.index for f in frames] == list(range(7))
+    assert source.skipped == [SkippedFrame(7, "", (
+        "the file ends inside frame 7, so it was cut off (copied or recorded incompletely); the frames before it are read"))]
