@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from calibcoach.app.session import FrameOutcome, Progress, SessionSettings
     from calibcoach.drivers.lens import CameraModel
 
+_SKIPPED_SHOWN = 10  # unreadable frames named one per line at the end of a replay; the rest counted
+
 
 class ProgressLine:
     """A progress bar of frames read on a terminal (`progress.py`); a line every few seconds otherwise."""
@@ -227,8 +229,11 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
 
     if stats.variant_found and stats.variant_found != "standard pattern":
         print(f"calibcoach: detected {stats.variant_found}", file=sys.stderr)
-    for skipped in source.skipped[:10]:
-        print(f"calibcoach: skipped frame {skipped.index} {skipped.name}: {skipped.reason}", file=sys.stderr)
+    for skipped in source.skipped[:_SKIPPED_SHOWN]:
+        name = f" ({skipped.name})" if skipped.name else ""  # files have names, video frames only their index
+        print(f"calibcoach: skipped frame {skipped.index}{name}: {skipped.reason}", file=sys.stderr)
+    if len(source.skipped) > _SKIPPED_SHOWN:
+        print(f"calibcoach: ... and {len(source.skipped) - _SKIPPED_SHOWN} more frames skipped", file=sys.stderr)
     why_stopped = (
         "interrupted: solving with the frames kept so far" if stats.interrupted
         else "stop rule met (coverage complete, uncertainty on target)" if stats.stopped_early

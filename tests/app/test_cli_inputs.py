@@ -265,3 +265,19 @@ def test_live_suggests_fov_when_the_lens_read_far_from_the_guess(lens: str, give
         return
     assert says in hint
     assert fov_hint(camera, float(says.split()[-1])) == ""  # what it suggests fits
+
+
+def test_unreadable_frames_are_named_then_counted(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    demo = sorted((Path(__file__).parents[2] / "recordings" / "demo_webcam720_careful" / "frames").iterdir())
+    for path in demo[:24]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    for i in range(12):  # sorted after the good frames: indices 24-35
+        (folder / f"zz_damaged_{i:02d}.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    _, _, err = run_cli(capsys, "calibrate", str(folder), "--out", str(tmp_path / "o"), "--quiet", "--no-viewer")
+    named = [ln for ln in err.splitlines() if ln.startswith("calibcoach: skipped frame")]
+    assert named[0] == ("calibcoach: skipped frame 24 (zz_damaged_00.png): file does not decode as an image "
+                        "(damaged, truncated, or not really a .png file)")
+    assert len(named) == 10
+    assert "calibcoach: ... and 2 more frames skipped" in err.splitlines()
