@@ -26,18 +26,17 @@ from calibcoach.app.session_finish import (
 from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings, lens_guess
 from calibcoach.app.session_types import SessionResult as SessionResult  # re-exported: what finish() returns
 from calibcoach.app.solve.calibrate import poses_for_views, solve
+from calibcoach.app.solve.information import (
+    covariance_from_information,
+    intrinsic_names,
+    marginal_information,
+    view_jacobian,
+)
 from calibcoach.app.solve.model_choice import pinhole_sees_narrow_lens
 from calibcoach.app.solve.next_view import RankedPose, error_cut, rank_poses
 from calibcoach.app.solve.result import UncertaintyMap, View
 from calibcoach.app.solve.robust import noise_sigma_px
-from calibcoach.app.solve.uncertainty import (
-    covariance_from_information,
-    covered_region_mask,
-    intrinsic_names,
-    marginal_information,
-    projection_uncertainty,
-    view_jacobian,
-)
+from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.candidates import (

@@ -19,11 +19,12 @@ import numpy as np
 
 from calibcoach.app.session_types import SessionResult
 from calibcoach.app.solve.calibrate import solve
+from calibcoach.app.solve.information import marginal_information
 from calibcoach.app.solve.model_choice import choose_model
 from calibcoach.app.solve.next_view import fill_from_reserve
 from calibcoach.app.solve.result import Calibration, ModelChoice, View
 from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
-from calibcoach.app.solve.uncertainty import covered_region_mask, marginal_information, projection_uncertainty
+from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch

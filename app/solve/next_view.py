@@ -20,14 +20,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibcoach.app.solve.calibrate import pose_for_view
-from calibcoach.app.solve.result import View
-from calibcoach.app.solve.uncertainty import (
+from calibcoach.app.solve.information import (
     covariance_from_information,
     information_gain,
     schur_update,
     schur_updates,
     view_jacobian,
 )
+from calibcoach.app.solve.result import View
 from calibcoach.coverage.candidates import CandidatePose
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.drivers.lens import CameraModel

@@ -24,8 +24,8 @@ from dataclasses import replace
 import numpy as np
 
 from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.information import intrinsic_covariance, intrinsic_names
 from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
-from calibcoach.app.solve.uncertainty import intrinsic_covariance, intrinsic_names
 from calibcoach.app.solve.weighted import view_weights, weighted_refine
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel

@@ -18,8 +18,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from calibcoach.app.solve.information import intrinsic_names, stacked_projections_and_jacobians
 from calibcoach.app.solve.result import View
-from calibcoach.app.solve.uncertainty import intrinsic_names, stacked_projections_and_jacobians
 from calibcoach.drivers.lens import CameraModel
 
 MIN_WEIGHT = 0.1  # a view at 3x the typical corner noise or worse counts a tenth

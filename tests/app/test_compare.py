@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calibcoach.app.solve import information as I
 from calibcoach.app.solve import uncertainty as U
 from calibcoach.app.solve.compare import cross_validation_difference, projection_difference
 from calibcoach.app.solve.result import View
@@ -102,11 +103,11 @@ def _solve(views, model):
     img = [v.image_points_px.astype(np.float32) for v in views]
     flags = cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0
     rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, SIZE, None, None, flags=flags)
-    P = len(U.intrinsic_names(model))
+    P = len(I.intrinsic_names(model))
     camera = CameraModel(model, K, D.reshape(-1)[: P - 4], SIZE)
     n = 2 * BOARD.shape[0] * len(views)
     sigma = rms * np.sqrt(n / 2 / (n - P - 6 * len(views)))
-    cov = U.intrinsic_covariance(camera, views, np.reshape(rvecs, (-1, 3)), np.reshape(tvecs, (-1, 3)), sigma_px=sigma)
+    cov = I.intrinsic_covariance(camera, views, np.reshape(rvecs, (-1, 3)), np.reshape(tvecs, (-1, 3)), sigma_px=sigma)
     corners = [v.image_points_px for v in views]
     umap = U.projection_uncertainty(camera, cov, covered_mask_fn=lambda gx, gy: U.covered_region_mask(SIZE, corners, (gx.size, gy.size)))
     return camera, umap

@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from calibcoach.app.solve import information as I
 from calibcoach.app.solve import uncertainty as U
 from calibcoach.app.solve.calibrate import reprojection_residuals, solve
 from calibcoach.app.solve.compare import projection_difference
@@ -268,7 +269,7 @@ def test_noise_sigma_recovers_the_planted_sigma(sigma: float, seed: int) -> None
     assert noise == pytest.approx(sigma, rel=0.10)
     assert robust_sigma_px(list(cal.residuals_px)) == pytest.approx(sigma, rel=0.15)  # MAD is biased low by the fit
     # the covariance the solve reports is built on that sigma: against the truth's covariance at the planted sigma
-    truth_cov = U.intrinsic_covariance(CAMERA, views, cal.rvecs, cal.tvecs, sigma_px=sigma)
+    truth_cov = I.intrinsic_covariance(CAMERA, views, cal.rvecs, cal.tvecs, sigma_px=sigma)
     ratio = np.sqrt(np.diag(cal.intrinsic_covariance) / np.diag(truth_cov))
     assert np.all(np.abs(ratio - 1) < 0.15), ratio
 
@@ -315,7 +316,7 @@ def test_a_noisy_view_is_weighted_down_and_the_refinement_follows_the_clean_ones
     assert 0.1 < weights[3] < 0.35  # ...at about its inverse variance, (0.1 / 0.25)^2 = 0.16 less its pose's share
     assert np.all(weights[np.arange(12) != 3] > 0.7)
     typical = build_calibration(cal.camera, cal.views, cal.rvecs, cal.tvecs)
-    truth_cov = U.intrinsic_covariance(CAMERA, [v for v in cal.views], cal.rvecs, cal.tvecs, sigma_px=0.1)
+    truth_cov = I.intrinsic_covariance(CAMERA, [v for v in cal.views], cal.rvecs, cal.tvecs, sigma_px=0.1)
     # the covariance is built on the weighted typical sigma (0.1 px) and the view's weight
     assert np.sqrt(typical.intrinsic_covariance[0, 0] / truth_cov[0, 0]) == pytest.approx(1.0, abs=0.2)
     assert truth_error_px(cal.camera, mask) < truth_error_px(solve(views, SIZE, "pinhole").camera, mask)
@@ -404,7 +405,7 @@ def test_build_calibration_reports_rms_per_view_and_all() -> None:
     np.testing.assert_allclose(cal.per_view_rms_px, [np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in res])
     assert cal.rms_px == pytest.approx(float(np.sqrt(np.mean(np.sum(np.concatenate(res) ** 2, axis=1)))))
     assert cal.rms_px == pytest.approx(0.2 * np.sqrt(2), rel=0.1)  # truth's residuals are the planted noise
-    assert cal.intrinsic_names == U.intrinsic_names("pinhole") and cal.intrinsic_covariance.shape == (9, 9)
+    assert cal.intrinsic_names == I.intrinsic_names("pinhole") and cal.intrinsic_covariance.shape == (9, 9)
 
 
 def test_a_fisheye_view_whose_pose_cannot_be_initialised_is_left_out_not_fatal() -> None:

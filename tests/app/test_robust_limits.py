@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_robust import CAMERA, session, swapped_rows  # its synthetic sessions (tests/app is on pythonpath)
 
-from calibcoach.app.solve import uncertainty as U
+from calibcoach.app.solve import information as I
 from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
 from calibcoach.app.solve.result import View
 from calibcoach.app.solve.robust import (
@@ -74,7 +74,7 @@ def test_the_covariance_is_built_on_the_dof_corrected_weighted_sigma() -> None:
     cal = build_calibration(CAMERA, views, rvecs, tvecs)
     sigma = noise_sigma_px(cal.rms_px, n_points=6 * 70, n_params=9, n_views=6)
     assert sigma == pytest.approx(cal.rms_px / np.sqrt(2) * np.sqrt(840 / (840 - 9 - 36)))
-    np.testing.assert_allclose(cal.intrinsic_covariance, U.intrinsic_covariance(CAMERA, views, rvecs, tvecs, sigma_px=sigma),
+    np.testing.assert_allclose(cal.intrinsic_covariance, I.intrinsic_covariance(CAMERA, views, rvecs, tvecs, sigma_px=sigma),
                                rtol=1e-9)
     # weighted views: the typical RMS is sum(w r^2) / sum(w n), and each view enters the covariance at its weight
     w = [1.0, 1.0, 0.25, 1.0, 0.5, 1.0]
@@ -84,7 +84,7 @@ def test_the_covariance_is_built_on_the_dof_corrected_weighted_sigma() -> None:
     typical = np.sqrt(sum(wi * np.sum(r**2) for wi, r in zip(w, res, strict=True)) / (70 * sum(w)))
     sigma_w = noise_sigma_px(typical, n_points=420, n_params=9, n_views=6)
     np.testing.assert_allclose(cal_w.intrinsic_covariance,
-                               U.intrinsic_covariance(CAMERA, weighted, rvecs, tvecs, sigma_px=sigma_w), rtol=1e-9)
+                               I.intrinsic_covariance(CAMERA, weighted, rvecs, tvecs, sigma_px=sigma_w), rtol=1e-9)
     assert cal_w.rms_px == cal.rms_px  # the reported RMS stays the plain one
 
 

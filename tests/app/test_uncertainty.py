@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calibcoach.app.solve import information as I
 from calibcoach.app.solve import uncertainty as U
 from calibcoach.app.solve.result import View
 from calibcoach.drivers.lens import CameraModel
@@ -29,7 +30,7 @@ def perturbed(camera, name, eps):
     if name in where:
         K[where[name]] += eps
     else:
-        D[U.intrinsic_names(camera.model).index(name) - 4] += eps
+        D[I.intrinsic_names(camera.model).index(name) - 4] += eps
     return CameraModel(camera.model, K, D, camera.image_size)
 
 
@@ -48,11 +49,11 @@ def kb_project(camera, points):
 
 
 def test_intrinsic_names_follow_opencv_order():
-    assert U.intrinsic_names("pinhole") == ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
-    assert U.intrinsic_names("rational")[8:] == ("k3", "k4", "k5", "k6")
-    assert len(U.intrinsic_names("fisheye")) == 8
+    assert I.intrinsic_names("pinhole") == ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    assert I.intrinsic_names("rational")[8:] == ("k3", "k4", "k5", "k6")
+    assert len(I.intrinsic_names("fisheye")) == 8
     with pytest.raises(ValueError, match="model must be one of"):
-        U.intrinsic_names("omnidir")
+        I.intrinsic_names("omnidir")
 
 
 def test_opencv_fisheye_jacobian_columns_are_f_c_k_om_t():
@@ -62,7 +63,7 @@ def test_opencv_fisheye_jacobian_columns_are_f_c_k_om_t():
     _, J = cv2.fisheye.projectPoints(BOARD.reshape(1, -1, 3), r.reshape(1, 1, 3), t.reshape(1, 1, 3), cam.camera_matrix, cam.dist_coeffs)
     assert J.shape == (2 * BOARD.shape[0], 15)
     columns = {}
-    for name in U.intrinsic_names("fisheye"):
+    for name in I.intrinsic_names("fisheye"):
         e = step(name)
         columns[name] = (perturbed(cam, name, e).project(BOARD, r, t) - perturbed(cam, name, -e).project(BOARD, r, t)).reshape(-1) / (2 * e)
     for i in range(6):
@@ -81,9 +82,9 @@ def test_opencv_fisheye_jacobian_columns_are_f_c_k_om_t():
 def test_view_jacobian_matches_finite_differences(model):
     cam = LENSES[model]
     r, t = pose_at(cam, (400, 500), 0.5, -20, 30, 15)
-    J_intr, J_pose = U.view_jacobian(cam, BOARD, r, t)
-    assert J_intr.shape == (140, len(U.intrinsic_names(model))) and J_pose.shape == (140, 6)
-    for j, name in enumerate(U.intrinsic_names(model)):
+    J_intr, J_pose = I.view_jacobian(cam, BOARD, r, t)
+    assert J_intr.shape == (140, len(I.intrinsic_names(model))) and J_pose.shape == (140, 6)
+    for j, name in enumerate(I.intrinsic_names(model)):
         e = step(name)
         fd = (perturbed(cam, name, e).project(BOARD, r, t) - perturbed(cam, name, -e).project(BOARD, r, t)).reshape(-1) / (2 * e)
         assert np.abs(fd - J_intr[:, j]).max() < 1e-5 * max(1.0, np.abs(fd).max()), name
@@ -99,14 +100,14 @@ def test_projection_jacobian_matches_finite_differences(model):
     cam = LENSES.get(model) or CameraModel("fisheye", [[300, 0, 640.0], [0, 300, 360.0], [0, 0, 1]], [0.02, -0.004, 0, 0], SIZE)
     gx, gy = U.image_grid(SIZE, (9, 5))
     J = U.projection_jacobian(cam, gx, gy, absorb_rotation=False)
-    assert J.shape == (5, 9, 2, len(U.intrinsic_names(cam.model)))
+    assert J.shape == (5, 9, 2, len(I.intrinsic_names(cam.model)))
     points = cam.unproject(np.stack([c.reshape(-1) for c in np.meshgrid(gx, gy)], 1)) * 10.0
     project = kb_project if cam.model == "fisheye" else (lambda c, p: c.project(p))
     front = points[:, 2] > 0.05
     assert np.abs(project(cam, points[front]) - cam.project(points[front])).max() < 1e-9  # the reference is OpenCV's model
     if model == "fisheye-200deg":
         assert np.degrees(np.arccos(points[:, 2] / 10.0)).max() > 120  # rays past 90 deg are covered
-    for j, name in enumerate(U.intrinsic_names(cam.model)):
+    for j, name in enumerate(I.intrinsic_names(cam.model)):
         e = step(name)
         fd = (project(perturbed(cam, name, e), points) - project(perturbed(cam, name, -e), points)) / (2 * e)
         assert np.abs(fd - J.reshape(-1, 2, J.shape[-1])[:, :, j]).max() < 1e-5 * max(1.0, np.abs(fd).max()), name
@@ -117,7 +118,7 @@ def test_absorbed_jacobian_is_orthogonal_to_rotations(model):
     """(I - R R^+) M has no component a common rotation of the rays can produce (R by finite differences)."""
     cam = LENSES[model]
     gx, gy = U.image_grid(SIZE, (16, 9))
-    M = U.projection_jacobian(cam, gx, gy).reshape(-1, len(U.intrinsic_names(model)))
+    M = U.projection_jacobian(cam, gx, gy).reshape(-1, len(I.intrinsic_names(model)))
     points = cam.unproject(np.stack([c.reshape(-1) for c in np.meshgrid(gx, gy)], 1)) * 10.0
     R = np.stack([
         (cam.project(points @ cv2.Rodrigues(w)[0].T) - cam.project(points @ cv2.Rodrigues(-w)[0].T)).reshape(-1) / 2e-7
@@ -152,11 +153,11 @@ def test_covariance_matches_opencv_std_deviations(model):
     img = [v.image_points_px.astype(np.float32) for v in views]
     flags = cv2.CALIB_RATIONAL_MODEL if model == "rational" else 0
     rms, K, D, rvecs, tvecs, std, _, _ = cv2.calibrateCameraExtended(obj, img, SIZE, None, None, flags=flags)
-    P = len(U.intrinsic_names(model))
+    P = len(I.intrinsic_names(model))
     solved = CameraModel(model, K, D.reshape(-1)[: P - 4], SIZE)
     n = 2 * BOARD.shape[0] * len(views)
     sigma = rms * np.sqrt(n / 2 / (n - P - 6 * len(views)))  # OpenCV's estimate: residual^2 / (dof), per coordinate
-    ours = np.sqrt(np.diag(U.intrinsic_covariance(solved, views, np.reshape(rvecs, (-1, 3)), np.reshape(tvecs, (-1, 3)), sigma_px=sigma)))
+    ours = np.sqrt(np.diag(I.intrinsic_covariance(solved, views, np.reshape(rvecs, (-1, 3)), np.reshape(tvecs, (-1, 3)), sigma_px=sigma)))
     theirs = std.reshape(-1)[:P]  # fx fy cx cy, then the distortion vector's order: k1 k2 p1 p2 k3 k4 k5 k6
     np.testing.assert_allclose(ours, theirs, rtol=1e-3)
 
@@ -167,7 +168,7 @@ def test_predicted_std_matches_monte_carlo(model):
     cam = LENSES[model]
     rng = np.random.default_rng(0)
     poses = random_poses(cam, 8, rng, distance_m=(0.35, 0.6) if model == "fisheye" else (0.6, 1.0))
-    predicted = np.sqrt(np.diag(U.intrinsic_covariance(cam, observe(cam, poses), *stacked(poses), sigma_px=0.2)))
+    predicted = np.sqrt(np.diag(I.intrinsic_covariance(cam, observe(cam, poses), *stacked(poses), sigma_px=0.2)))
     estimates = []
     for _ in range(60):
         views = observe(cam, poses, rng, noise_px=0.2)
@@ -191,12 +192,12 @@ def test_predicted_std_matches_monte_carlo(model):
 def test_rank_deficient_information_gives_huge_finite_variance():
     S = np.diag([4.0, 1.0, 0.0])  # the third parameter is not observed at all
     S[0, 1] = S[1, 0] = 2.0  # and the first two only through their difference: rank 1
-    C = U.covariance_from_information(S)
+    C = I.covariance_from_information(S)
     assert np.all(np.isfinite(C)) and np.all(np.diag(C) > 0)
     assert min(np.diag(C)) > 1e10
     cam = LENSES["pinhole"]
     one = [pose_at(cam, (640, 360), 0.8, 0, 0)]  # one frontal view cannot separate f from distance
-    C1 = U.intrinsic_covariance(cam, observe(cam, one), *stacked(one), sigma_px=0.2)
+    C1 = I.intrinsic_covariance(cam, observe(cam, one), *stacked(one), sigma_px=0.2)
     assert np.all(np.isfinite(C1)) and np.all(np.diag(C1) > 0) and np.sqrt(C1[0, 0]) > 1e3
 
 
@@ -206,7 +207,7 @@ def test_uncertainty_is_larger_outside_the_covered_region():
     poses = random_poses(cam, 10, rng, region=(0.4, 0.6), distance_m=(0.7, 0.9), tilt_deg=40)
     views = observe(cam, poses, rng)
     corners = [v.image_points_px for v in views]
-    cov = U.intrinsic_covariance(cam, views, *stacked(poses), sigma_px=0.2)
+    cov = I.intrinsic_covariance(cam, views, *stacked(poses), sigma_px=0.2)
     umap = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda gx, gy: U.covered_region_mask(SIZE, corners, (gx.size, gy.size)))
     assert umap.sigma_px.shape == (18, 32) and umap.covered.shape == (18, 32)
     assert umap.covered[9, 16] and not umap.covered[0, 0] and not umap.covered[17, 31]
@@ -240,23 +241,23 @@ def test_information_gain_prefers_a_tilted_corner_view_to_a_duplicate():
     frontal = pose_at(cam, (640, 360), 0.9, 0, 0)
     poses = [frontal, *random_poses(cam, 5, rng, region=(0.35, 0.65), tilt_deg=25)]
     views = observe(cam, poses, rng)
-    S = U.marginal_information(cam, views, *stacked(poses))
+    S = I.marginal_information(cam, views, *stacked(poses))
     corner_pose = pose_at(cam, (1080, 170), 0.7, 30, -30)
     scores = {}
     for label, pose in (("duplicate", frontal), ("corner", corner_pose)):
         image = cam.project(BOARD, *pose) + rng.normal(0, 0.2, (70, 2))
         ok, r, t = cv2.solvePnP(BOARD, image, cam.camera_matrix, cam.opencv_dist())  # the selector's pose
         assert ok
-        J_intr, J_pose = U.view_jacobian(cam, BOARD, r, t)
-        S_new, drop = U.information_gain(S, J_intr, J_pose)
+        J_intr, J_pose = I.view_jacobian(cam, BOARD, r, t)
+        S_new, drop = I.information_gain(S, J_intr, J_pose)
         W = U.pixel_variance_weight(U.projection_jacobian(cam, *U.image_grid(SIZE, (8, 5))))
-        _, drop_px = U.information_gain(S, J_intr, J_pose, weight=W)
+        _, drop_px = I.information_gain(S, J_intr, J_pose, weight=W)
         from calibcoach.app.solve.next_view import error_cut
 
         _, cut_E = error_cut(S, W, J_intr, J_pose)  # what guidance and selection score: the relative cut of E
         scores[label] = (drop, drop_px, cut_E)
         # adding the view one step at a time is exactly the Schur complement of the bigger solve
-        full = U.marginal_information(cam, [*views, View(9, "", IDS, image, BOARD)], *stacked([*poses, (r.ravel(), t.ravel())]))
+        full = I.marginal_information(cam, [*views, View(9, "", IDS, image, BOARD)], *stacked([*poses, (r.ravel(), t.ravel())]))
         np.testing.assert_allclose(S_new, full, rtol=1e-9, atol=1e-9 * np.abs(full).max())
     for k in range(3):
         assert 0 <= scores["duplicate"][k] < 0.2
@@ -287,7 +288,7 @@ def test_expected_error_and_its_map_match_monte_carlo(model):
     rng = np.random.default_rng(3)
     poses = random_poses(cam, 8, rng, distance_m=(0.35, 0.6) if model == "fisheye" else (0.6, 1.0))
     corners = [v.image_points_px for v in observe(cam, poses)]
-    cov = U.intrinsic_covariance(cam, observe(cam, poses), *stacked(poses), sigma_px=0.2)
+    cov = I.intrinsic_covariance(cam, observe(cam, poses), *stacked(poses), sigma_px=0.2)
     umap = U.projection_uncertainty(cam, cov, covered_mask_fn=lambda gx, gy: U.covered_region_mask(SIZE, corners, (gx.size, gy.size)))
     # one computation: the map's E and the trace form candidate scoring uses are the same number
     assert U.expected_error_px(cov, umap.error_weight) == pytest.approx(umap.expected_error_px, rel=1e-9)
@@ -381,8 +382,8 @@ def test_stacked_projections_are_the_views_projections_in_the_jacobians_rows(mod
     views[1] = View(views[1].frame_index, views[1].frame_name, views[1].ids[:20], views[1].image_points_px[:20],
                     views[1].object_points_m[:20])  # fewer corners than the rest: padded rows
     rvecs, tvecs = [r for r, _ in poses], [t for _, t in poses]
-    projected, J_intr, J_pose = U.stacked_projections_and_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
-    J_intr_alone, J_pose_alone = U.stacked_view_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
+    projected, J_intr, J_pose = I.stacked_projections_and_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
+    J_intr_alone, J_pose_alone = I.stacked_view_jacobians(camera, views, np.array(rvecs), np.array(tvecs))
     assert np.array_equal(J_intr, J_intr_alone) and np.array_equal(J_pose, J_pose_alone)
     for k, (v, r, t) in enumerate(zip(views, rvecs, tvecs, strict=True)):
         n = 2 * v.image_points_px.shape[0]
