@@ -13,7 +13,8 @@ long (bench/results/replay_speed.md). The pixels differ from FFmpeg's by ~0.7 of
 
 Only plain cases are indexed here; anything else returns None and is read by VideoCapture as
 before: another codec, a video stream that is not the first, a zero-length chunk (a dropped
-frame, whose timing FFmpeg accounts for its own way), or a structure that does not parse. Both
+frame, whose timing FFmpeg accounts for its own way), a structure that does not parse, or fewer
+frames found in a whole file than its headers count (the stream's length, OpenDML's total). Both
 the AVI 1.0 body and OpenDML's extension ("AVIX" RIFF chunks beyond 1 GB) are walked; a chunk
 that runs past the end of the file (a copy cut off) ends the index and is counted in `cut_off`.
 """
@@ -77,6 +78,7 @@ class _Walk:
         self._image_size: tuple[int, int] | None = None
         self._packets: list[tuple[int, int]] = []
         self._cut_off = 0
+        self._announced = 0  # frames the headers count (the stream's length, OpenDML's total)
 
     def _header(self, offset: int) -> tuple[bytes, int]:
         self._file.seek(offset)
@@ -100,6 +102,10 @@ class _Walk:
                 break
             offset += 8 + length + (length & 1)
         if self._video_ids is None or self._image_size is None or not self._packets:
+            return None
+        if not self._cut_off and len(self._packets) < self._announced:
+            # Fewer frames than the header counts in a whole file: the walk lost its way (a writer that
+            # did not pad odd chunks, say); VideoCapture reads such files by their index instead.
             return None
         return MjpgIndex(tuple(self._packets), self._fps, self._image_size, self._cut_off)
 
@@ -135,14 +141,18 @@ class _Walk:
         return self._video_ids or ()
 
     def _stream_headers(self, hdrl: bytes) -> bool:
-        """The first stream's header ('strh') and format ('strf'): MJPG video, its size and rate."""
-        offset = 4  # past the list's form type
+        """The first stream's header ('strh') and format ('strf'): MJPG video, its size, rate and
+        length; and OpenDML's total frame count ('dmlh'), where the file has one."""
+        offset, video = 4, None  # past the list's form type
         while offset + 8 <= len(hdrl):
             kind, length = hdrl[offset:offset + 4], struct.unpack_from("<I", hdrl, offset + 4)[0]
-            if kind == b"LIST" and hdrl[offset + 8:offset + 12] == b"strl":
-                return self._first_stream(hdrl[offset + 12:offset + 8 + length])
+            form = hdrl[offset + 8:offset + 12] if kind == b"LIST" else b""
+            if form == b"strl" and video is None:
+                video = self._first_stream(hdrl[offset + 12:offset + 8 + length])
+            elif form == b"odml" and hdrl[offset + 12:offset + 16] == b"dmlh" and offset + 24 <= len(hdrl):
+                self._announced = max(self._announced, struct.unpack_from("<I", hdrl, offset + 20)[0])
             offset += 8 + length + (length & 1)
-        return False
+        return bool(video)
 
     def _first_stream(self, strl: bytes) -> bool:
         chunks: dict[bytes, bytes] = {}
@@ -163,5 +173,6 @@ class _Walk:
             return False
         self._video_ids = (b"00dc", b"00db")  # the first stream's compressed and uncompressed chunk names
         self._fps = rate / scale if scale and rate else None
+        self._announced = max(self._announced, struct.unpack_from("<I", strh, 32)[0])  # dwLength: the stream's frames
         self._image_size = (int(width), abs(int(height)))
         return True

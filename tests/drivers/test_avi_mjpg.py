@@ -53,22 +53,23 @@ def _jpeg(i: int, *, huffman_tables: bool = True) -> bytes:
     return bytes(kept + data[at:])
 
 
-def _chunk(fourcc: bytes, body: bytes) -> bytes:
-    return fourcc + struct.pack("<I", len(body)) + body + b"\0" * (len(body) % 2)
+def _chunk(fourcc: bytes, body: bytes, *, pad: bool = True) -> bytes:
+    return fourcc + struct.pack("<I", len(body)) + body + b"\0" * (len(body) % 2 if pad else 0)
 
 
 def _list(kind: bytes, form: bytes, *chunks: bytes) -> bytes:
     return _chunk(kind, form + b"".join(chunks))
 
 
-def _avi(frames: list[bytes], *, extension: list[bytes] | None = None, codec: bytes = b"MJPG") -> bytes:
-    """An AVI of one video stream holding `frames` as '00dc' chunks; `extension`: more in an OpenDML 'AVIX' chunk."""
+def _avi(frames: list[bytes], *, extension: list[bytes] | None = None, codec: bytes = b"MJPG", pad: bool = True) -> bytes:
+    """An AVI of one video stream holding `frames` as '00dc' chunks; `extension`: more in an OpenDML 'AVIX'
+    chunk; `pad` False writes odd-sized chunks without the pad byte RIFF asks for, as some writers do."""
     avih = struct.pack("<14I", round(1e6 / FPS), 0, 0, 0x10, len(frames), 0, 1, 0, WIDTH, HEIGHT, 0, 0, 0, 0)
     strh = b"vids" + codec + struct.pack("<IHHIIIIIIIIhhhh", 0, 0, 0, 0, 1, FPS, 0, len(frames), 0, 0xFFFFFFFF, 0,
                                          0, 0, WIDTH, HEIGHT)
     strf = struct.pack("<IiiHH4sIiiII", 40, WIDTH, HEIGHT, 1, 24, codec, WIDTH * HEIGHT * 3, 0, 0, 0, 0)
     header = _list(b"LIST", b"hdrl", _chunk(b"avih", avih), _list(b"LIST", b"strl", _chunk(b"strh", strh), _chunk(b"strf", strf)))
-    movi = _list(b"LIST", b"movi", *(_chunk(b"00dc", f) for f in frames))
+    movi = _list(b"LIST", b"movi", *(_chunk(b"00dc", f, pad=pad) for f in frames))
     data = _list(b"RIFF", b"AVI ", header, movi)
     if extension is not None:
         data += _list(b"RIFF", b"AVIX", _list(b"LIST", b"movi", *(_chunk(b"00dc", f) for f in extension)))
@@ -135,6 +136,16 @@ def test_a_dropped_frame_or_another_codec_leaves_the_file_to_videocapture(tmp_pa
     other.write_bytes(_avi([_jpeg(0)], codec=b"XVID"))
     assert mjpg_index(other) is None
     assert mjpg_index(tmp_path / "missing.avi") is None
+
+
+def test_a_walk_that_loses_its_way_leaves_the_file_to_videocapture(tmp_path: Path) -> None:
+    odd = [data + b"\0" * (1 - len(data) % 2) for data in (_jpeg(i) for i in range(5))]  # every chunk odd-sized
+    padded, unpadded = tmp_path / "padded.avi", tmp_path / "unpadded.avi"
+    padded.write_bytes(_avi(odd))
+    unpadded.write_bytes(_avi(odd, pad=False))
+    assert len(mjpg_index(padded).packets) == 5  # type: ignore[union-attr]
+    # without the pad bytes the chunks after the first are misread: fewer frames than the header counts
+    assert mjpg_index(unpadded) is None
 
 
 def test_a_file_cut_off_inside_a_frame_keeps_the_frames_before_it(tmp_path: Path) -> None:
