@@ -118,7 +118,7 @@ def main() -> int:
     print(f"calibcoach calibrate (whole command, start-up included):          {o:.2f} s")
     print(f"  {ours[0][1]}")
     if not video:
-        print(f"  PNG rows of {files[0].name}: {png_filters(files[0])} (how they were filtered decides the decoding cost, README)")
+        print(f"  PNG rows of {files[0].name}: {png_filters(files[0])} (how they were filtered decides the decoding cost, bench/results/replay_speed.md)")
     # The medians of each side's times can pair a fast run of one with a slow run of the other; the
     # median of the run-by-run ratios cannot, and is the number to compare with 0.5.
     print(f"ratio calibcoach / plain: {float(np.median(pairs)):.2f} median of the runs' ratios ({', '.join(f'{r:.2f}' for r in pairs)}); "
