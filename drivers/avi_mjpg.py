@@ -73,7 +73,7 @@ class _Walk:
 
     def __init__(self, file: BinaryIO, size: int) -> None:
         self._file, self._size = file, size
-        self._video_ids: tuple[bytes, bytes] | None = None
+        self._video_ids: tuple[bytes, ...] = ()  # the video stream's chunk names, once its header is read
         self._fps: float | None = None
         self._image_size: tuple[int, int] | None = None
         self._packets: list[tuple[int, int]] = []
@@ -101,7 +101,7 @@ class _Walk:
             if self._cut_off:
                 break
             offset += 8 + length + (length & 1)
-        if self._video_ids is None or self._image_size is None or not self._packets:
+        if not self._video_ids or self._image_size is None or not self._packets:
             return None
         if not self._cut_off and len(self._packets) < self._announced:
             # Fewer frames than the header counts in a whole file: the walk lost its way (a writer that
@@ -123,9 +123,9 @@ class _Walk:
                     if not self._stream_headers(self._file.read(list_end - body)):
                         return False
                 elif form in (b"movi", b"rec "):
-                    if self._video_ids is None or not self._list(body + 4, list_end):
+                    if not self._video_ids or not self._list(body + 4, list_end):
                         return False
-            elif kind in self._video_ids_or_none():
+            elif kind in self._video_ids:
                 if body + length > self._size:
                     self._cut_off = 1
                     return True
@@ -136,9 +136,6 @@ class _Walk:
                 return True  # the file ends inside this chunk: nothing further to find
             offset = body + length + (length & 1)
         return True
-
-    def _video_ids_or_none(self) -> tuple[bytes, ...]:
-        return self._video_ids or ()
 
     def _stream_headers(self, hdrl: bytes) -> bool:
         """The first stream's header ('strh') and format ('strf'): MJPG video, its size, rate and
