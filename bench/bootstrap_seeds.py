@@ -223,7 +223,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent.parent / "shared" / "data")
     parser.add_argument("--quick", action="store_true", help="one seed per style, no real captures")
-    parser.add_argument("--report-only", action="store_true", help="rewrite the report from bench/results/bootstrap_seeds.json")
+    parser.add_argument("--report-only", action="store_true", help="rewrite the report from bench/cache/bootstrap_seeds.json")
     args = parser.parse_args()
     if args.report_only:
         _report_only(CACHE / "bootstrap_seeds.json")
