@@ -77,6 +77,10 @@ def _frame_budget(text: str) -> int:
     return value
 
 
+_FOV_HELP = ("the lens's rough horizontal field of view in degrees, from its datasheet: the guidance and the fisheye-aware "
+             "re-detection start from it until the first solve (default 70; 120 or more: a fisheye)")
+
+
 def _field_of_view(text: str) -> float:
     """--fov: a lens's horizontal field of view in degrees, as a datasheet gives it."""
     try:
@@ -151,9 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="distortion model (auto: field of view + cross-validation)")
     cal.add_argument("--accept-partial", action="store_true",
                      help="write camera_matrix.npy/dist_coeffs.npy even when coverage or uncertainty is insufficient")
-    cal.add_argument("--fov", type=_field_of_view, metavar="DEG",
-                     help="the lens's rough horizontal field of view in degrees, from its datasheet: the guidance and the fisheye-aware "
-                          "re-detection start from it until the first solve (default 70; 120 or more: a fisheye)")
+    cal.add_argument("--fov", type=_field_of_view, metavar="DEG", help=_FOV_HELP)
     cal.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
     cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
@@ -190,9 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--allow-autofocus", action="store_true", help="run on a camera whose focus cannot be locked")
     lv.add_argument("--model", choices=("auto", "pinhole", "rational", "fisheye"), default="auto")
     lv.add_argument("--accept-partial", action="store_true", help="write the .npy files even when not trusted")
-    lv.add_argument("--fov", type=_field_of_view, metavar="DEG",
-                    help="the lens's rough horizontal field of view in degrees, from its datasheet: the guidance and the fisheye-aware "
-                         "re-detection start from it until the first solve (default 70; 120 or more: a fisheye)")
+    lv.add_argument("--fov", type=_field_of_view, metavar="DEG", help=_FOV_HELP)
     lv.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     lv.add_argument("--no-stop", action="store_true", help="keep capturing after the stop rule is met")
     lv.add_argument("--write-to-device", action="store_true",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -111,8 +112,6 @@ def fov_hint(camera: CameraModel, given_deg: float | None) -> str:
     distortion-free lens's field of view, an equidistant one for a fisheye), so passing it silences
     the hint; for a strongly distorted wide lens that is less than its datasheet says.
     """
-    import math
-
     from calibcoach.app.session_types import SessionSettings, guess_for_focal, lens_guess
 
     guess = SessionSettings().hfov_guess_deg if given_deg is None else given_deg
