@@ -77,6 +77,25 @@ def _frame_budget(text: str) -> int:
     return value
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity mask where the OS has one, e.g. under taskset or a container)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def _workers(text: str) -> int:
+    """--workers: the scan's detection threads; each holds a detector and a frame (~1 MB at 720p)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of threads such as 2, got {text!r}") from None
+    if not 1 <= value <= 64:
+        raise argparse.ArgumentTypeError(f"{value} detection threads: pass 1 to 64 (default: the {usable_cores()} usable cores)")
+    return value
+
+
 _FOV_HELP = ("the lens's rough horizontal field of view in degrees, from its datasheet: the guidance and the fisheye-aware "
              "re-detection start from it until the first solve (default 70; 120 or more: a fisheye)")
 
@@ -158,10 +177,13 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--fov", type=_field_of_view, metavar="DEG", help=_FOV_HELP)
     cal.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
-    cal.add_argument("--workers", type=int, default=2, help="detection threads (default 2)")
+    # The plain loop's detectBoard runs on every core (OpenCV's own threads); the scan's detections
+    # run one per thread with OpenCV single-threaded, so they take as many threads as there are cores.
+    cal.add_argument("--workers", type=_workers, default=max(2, usable_cores()),
+                     help="detection threads of a replay's scan (default: the usable cores, at least 2)")
     cal.add_argument("--every-frame", action="store_true",
-                     help="decode and detect every frame of an image folder (default: pass over frames whose "
-                          "neighbours show the same view)")
+                     help="detect each frame of a video or folder in full instead of tracking a held board from the frame "
+                          "before (a board in transit is judged by the scene's change either way; see the README's held-frame scan)")
     cal.add_argument("--quiet", action="store_true", help="no progress line")
     add_viewer_arguments(cal, default="none")
     add_board_arguments(cal)

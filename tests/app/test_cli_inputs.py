@@ -281,3 +281,18 @@ def test_unreadable_frames_are_named_then_counted(tmp_path: Path, capsys: pytest
                         "(damaged, truncated, or not really a .png file)")
     assert len(named) == 10
     assert "calibcoach: ... and 2 more frames skipped" in err.splitlines()
+
+
+def test_detection_threads_default_to_the_usable_cores_and_refuse_nonsense(capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+
+    from calibcoach.app.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args(["calibrate", "frames", "--out", "out"])
+    assert args.workers == max(2, len(os.sched_getaffinity(0)))  # the plain loop's detectBoard uses every core too
+    assert parser.parse_args(["calibrate", "frames", "--out", "out", "--workers", "3"]).workers == 3
+    for bad in ("0", "two"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["calibrate", "frames", "--out", "out", "--workers", bad])
+        assert "--workers" in capsys.readouterr().err
