@@ -66,12 +66,17 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _whole_number(text: str, example: str) -> int:
+    """An option's whole number, or argparse's error naming what was expected (`example`: "60 frames")."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number such as {example}, got {text!r}") from None
+
+
 def _frame_budget(text: str) -> int:
     """--max-frames: a calibration needs at least MIN_VIEWS_TO_STOP distinct frames to be trusted."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of frames such as 60, got {text!r}") from None
+    value = _whole_number(text, "60 frames")
     if value < 15:
         raise argparse.ArgumentTypeError(f"{value} frames cannot make a trusted calibration; pass at least 15 (default 60)")
     return value
@@ -87,10 +92,7 @@ def usable_cores() -> int:
 
 def _workers(text: str) -> int:
     """--workers: the scan's detection threads; each holds a detector and a frame (~1 MB at 720p)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of threads such as 2, got {text!r}") from None
+    value = _whole_number(text, "2 threads")
     if not 1 <= value <= 64:
         raise argparse.ArgumentTypeError(f"{value} detection threads: pass 1 to 64 (default: the {usable_cores()} usable cores)")
     return value
