@@ -180,9 +180,10 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--max-frames", type=_frame_budget, default=60, help="most frames kept for the solve (default 60)")
     cal.add_argument("--no-stop", action="store_true", help="read the whole source even after the stop rule is met")
     # The plain loop's detectBoard runs on every core (OpenCV's own threads); the scan's detections
-    # run one per thread with OpenCV single-threaded, so they take as many threads as there are cores.
-    cal.add_argument("--workers", type=_workers, default=max(2, usable_cores()),
-                     help="detection threads of a replay's scan (default: the usable cores, at least 2)")
+    # run one per thread with OpenCV single-threaded, so they take as many threads as there are cores
+    # -- up to 8: the scan runs at least 8 frames ahead (drivers/base.py `frames_ahead`), not more.
+    cal.add_argument("--workers", type=_workers, default=min(max(2, usable_cores()), 8),
+                     help="detection threads of a replay's scan (default: the usable cores, 2 to 8)")
     cal.add_argument("--every-frame", action="store_true",
                      help="detect each frame of a video or folder in full instead of tracking a held board from the frame "
                           "before (a board in transit is judged by the scene's change either way; see the README's held-frame scan)")
