@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -140,24 +141,19 @@ class _Walk:
     def _stream_headers(self, hdrl: bytes) -> bool:
         """The first stream's header ('strh') and format ('strf'): MJPG video, its size, rate and
         length; and OpenDML's total frame count ('dmlh'), where the file has one."""
-        offset, video = 4, None  # past the list's form type
-        while offset + 8 <= len(hdrl):
-            kind, length = hdrl[offset:offset + 4], struct.unpack_from("<I", hdrl, offset + 4)[0]
-            form = hdrl[offset + 8:offset + 12] if kind == b"LIST" else b""
+        video = None
+        for kind, body, length in _chunks(hdrl, 4):  # past the list's form type
+            form = hdrl[body:body + 4] if kind == b"LIST" else b""
             if form == b"strl" and video is None:
-                video = self._first_stream(hdrl[offset + 12:offset + 8 + length])
-            elif form == b"odml" and hdrl[offset + 12:offset + 16] == b"dmlh" and offset + 24 <= len(hdrl):
-                self._announced = max(self._announced, struct.unpack_from("<I", hdrl, offset + 20)[0])
-            offset += 8 + length + (length & 1)
+                video = self._first_stream(hdrl[body + 4:body + length])
+            elif form == b"odml" and hdrl[body + 4:body + 8] == b"dmlh" and body + 16 <= len(hdrl):
+                self._announced = max(self._announced, struct.unpack_from("<I", hdrl, body + 12)[0])
         return bool(video)
 
     def _first_stream(self, strl: bytes) -> bool:
         chunks: dict[bytes, bytes] = {}
-        offset = 0
-        while offset + 8 <= len(strl):
-            kind, length = strl[offset:offset + 4], struct.unpack_from("<I", strl, offset + 4)[0]
-            chunks.setdefault(kind, strl[offset + 8:offset + 8 + length])
-            offset += 8 + length + (length & 1)
+        for kind, body, length in _chunks(strl, 0):
+            chunks.setdefault(kind, strl[body:body + length])
         strh, strf = chunks.get(b"strh", b""), chunks.get(b"strf", b"")
         if len(strh) < 36 or len(strf) < 20 or strh[:4] != b"vids":
             return False
@@ -173,3 +169,12 @@ class _Walk:
         self._announced = max(self._announced, struct.unpack_from("<I", strh, 32)[0])  # dwLength: the stream's frames
         self._image_size = (int(width), abs(int(height)))
         return True
+
+
+def _chunks(data: bytes, start: int) -> Iterator[tuple[bytes, int, int]]:
+    """(name, body offset, body length) of each RIFF chunk in `data` from `start`, odd lengths padded."""
+    offset = start
+    while offset + 8 <= len(data):
+        kind, length = data[offset:offset + 4], struct.unpack_from("<I", data, offset + 4)[0]
+        yield kind, offset + 8, length
+        offset += 8 + length + (length & 1)
