@@ -1,7 +1,8 @@
 """Where a replay's error against the truth comes from: its corners, or the poses it has.
 
 For one cached render (bench/renders.py), runs `calibcoach calibrate`'s replay and scores it
-against the lens truth over the covered region (as bench/heldout.py does), then solves the very
+against the lens truth over the covered region, with bench/heldout.py's yardstick (the detected
+corners of every frame with >= 6), then solves the very
 same final views (plain calibrateCamera, 5-term) three more ways:
 
 - with their *true* corners plus independent noise of the detected corners' measured size
@@ -25,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import score, solve_plain  # noqa: E402 - bench modules beside this one
+from heldout import detect_all  # noqa: E402
 from renders import CACHE, capture_path  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
@@ -46,16 +48,11 @@ def error_sources(cell: str, seed: int) -> str:
     if not folder.is_dir():
         raise SystemExit(f"error_sources: {folder} is not rendered; run bench/heldout.py (or bench/renders.py) for it first")
     truth = read_truth(folder)
-    lens, spec = truth.camera, BoardSpec()
+    lens = truth.camera
     poses = {i: (r, t) for i, r, t in truth.poses}
-    # the yardstick's covered region: every frame's in-image true corners (>= 6), as bench/heldout.py
-    covered, board_corners = [], spec.corner_points_m()
-    for r, t in poses.values():
-        p = lens.project(board_corners, r, t)
-        inside = (p[:, 0] >= 0) & (p[:, 0] < lens.image_size[0]) & (p[:, 1] >= 0) & (p[:, 1] < lens.image_size[1])
-        if inside.sum() >= 6:
-            covered.append(p[inside])
-    session, _stats = run_replay(open_source(capture_path(cell, seed)), spec)
+    every_frame, _seconds = detect_all(capture_path(cell, seed))
+    covered = [d.corners_px for d in every_frame.values() if d.corner_count >= 6]  # bench/heldout.py's yardstick
+    session, _stats = run_replay(open_source(capture_path(cell, seed)), BoardSpec())
     result = session.finish()
     views = result.calibration.views
     detected, true, shifts = [], [], []
