@@ -22,6 +22,7 @@ from calibcoach.app.solve.calibrate import solve
 from calibcoach.app.solve.information import marginal_information
 from calibcoach.app.solve.model_choice import choose_model
 from calibcoach.app.solve.next_view import fill_from_reserve
+from calibcoach.app.solve.residual_structure import residual_structure
 from calibcoach.app.solve.result import Calibration, ModelChoice, View
 from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
 from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
@@ -162,7 +163,9 @@ class SessionFinish:
                     started, self.views = None, fallbacks.pop(0)
         finally:
             pool.shutdown(wait=False, cancel_futures=True)
-        calibration = self._with_look_alikes_weighted(solved)
+        groups = self._look_alike_groups(solved.views, solved.camera)
+        calibration = self._with_look_alikes_weighted(solved, groups)
+        structure = residual_structure(calibration, groups)
         corner_sets = [v.image_points_px for v in calibration.views]
         # the same map, grid and covered region as the live E (`_update_after_accept`), on the final solve
         stage("uncertainty")
@@ -182,6 +185,7 @@ class SessionFinish:
             image_size=self.image_size,
             noise_px=noise,
             target_px=self.settings.error_target_px,
+            structure=structure,
         )
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
@@ -202,6 +206,7 @@ class SessionFinish:
             noise_px=noise,
             target_px=self.settings.error_target_px or error_target_px(noise, self.image_size),
             stop_reason=self.stop_reason,
+            residual_structure=structure,
         )
 
     def _fill_budget(self) -> None:
@@ -254,14 +259,13 @@ class SessionFinish:
             known[1][view.frame_index] = pose
         return [known[1][view.frame_index] for view in views]
 
-    def _with_look_alikes_weighted(self, calibration: Calibration) -> Calibration:
+    def _with_look_alikes_weighted(self, calibration: Calibration, groups: list[int]) -> Calibration:
         """The final covariance with each hold's look-alike frames counted for what they add.
 
-        See `robust.with_look_alikes_weighted`; the groups are the selector's look-alike test
-        on the final solve's poses.
+        See `robust.with_look_alikes_weighted`; `groups` are the selector's look-alike test
+        on the final solve's poses (`_look_alike_groups`).
         """
-        weighted, self.look_alike_correlation = with_look_alikes_weighted(
-            calibration, self._look_alike_groups(calibration.views, calibration.camera))
+        weighted, self.look_alike_correlation = with_look_alikes_weighted(calibration, groups)
         return weighted
 
     def _final_coverage(self, calibration: Calibration) -> CoverageMap:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibcoach.app.solve.residual_structure import ResidualStructure
 from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import Detection
@@ -108,3 +109,5 @@ class SessionResult:
     noise_px: float  # corner noise per coordinate the final solve measured (dof-corrected RMS)
     target_px: float  # the E target the verdict judged against
     stop_reason: str  # why the capture ended ("" when the source simply ran out)
+    # residual patterns fixed to the board or to the image (None: not tested, e.g. a result built in a test)
+    residual_structure: ResidualStructure | None = None

@@ -450,6 +450,8 @@ def _render_picture(name: str, result: SessionResult) -> np.ndarray | None:
     if name == "per_frame_errors.png":
         return pictures.per_frame_error_picture([v.frame_name or str(v.frame_index) for v in cal.views],
                                                 cal.per_view_rms_px)
+    if name == "board_residuals.png" and result.residual_structure is not None and result.residual_structure.board.judged:
+        return pictures.board_pattern_picture(result.residual_structure, result.board)
     if name == "undistorted_check.png" and result.check_image is not None:
         return pictures.undistorted_check_picture(result.check_image, cal.camera)
     return None

@@ -35,6 +35,7 @@ RESIDUALS = "report/residuals"
 REPORT_IMAGES = {  # entity path -> file name the report writes into the output folder
     "report/coverage": "coverage.png",
     "report/residual_map": "residuals.png",
+    "report/board_residuals": "board_residuals.png",  # written only where enough board corners were seen in 3+ poses
     "report/uncertainty": "uncertainty.png",
     "report/undistorted_check": "undistorted_check.png",
     "report/per_frame_errors": "per_frame_errors.png",

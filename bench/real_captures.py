@@ -11,6 +11,9 @@
 - boofcv_sony_hx5v_chess: a plain chessboard, which calibcoach does not read (ChArUco only): the
   right answer is a clear error.
 
+Each row also shows the residual fixed to the board (app/solve/residual_structure.py), and the
+pycamset cameras' per-corner patterns are correlated with each other: one board, three cameras.
+
     .venv/bin/python bench/real_captures.py [--data ../shared/data]
 
 Writes bench/results/real_captures.md.
@@ -83,6 +86,17 @@ def plain_video_fx(video: Path, model: str) -> float:
     return float(K[0, 0])
 
 
+def board_pattern(data: dict | None) -> str:
+    """The residual fixed to the board (app/solve/residual_structure.py): size on the board, in px, ratio to noise."""
+    found = (data or {}).get("residual_structure")
+    if not found or not found.get("board_corners_judged"):
+        return "-"
+    if found["board_corners_judged"] < 20:
+        return f"not judged ({found['board_corners_judged']} corners in 3+ poses)"
+    flag = " **off its spec**" if found["board_fixed"] else ""
+    return f"{found['board_fixed_um']:.1f} um ({found['board_fixed_px']:.2f} px), {found['board_fixed_ratio']:.1f}x noise{flag}"
+
+
 def verdict_of(code: int, data: dict | None, last: str) -> str:
     if data is None:
         return f"error (exit {code}): {last[:110]}"
@@ -93,16 +107,19 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent.parent / "shared" / "data")
     args = parser.parse_args()
-    rows = ["| capture | calibcoach fx / fy | reference fx / fy | fx off by | frames used | verdict | seconds |",
-            "|---|---|---|---|---|---|---|"]
+    rows = ["| capture | calibcoach fx / fy | reference fx / fy | fx off by | frames used | verdict | residual fixed to the board | seconds |",
+            "|---|---|---|---|---|---|---|---|"]
+    patterns: dict[str, dict[int, np.ndarray]] = {}
     for cam, (rfx, rfy) in PYCAMSET_REFERENCE.items():
         code, data, last, secs = calibrate(args.data / "pycamset_charuco_3cam" / cam, PYCAMSET_BOARD)
         if data is None:
-            rows.append(f"| pycamset cam {cam} | - | {rfx:.1f} / {rfy:.1f} | - | - | {verdict_of(code, data, last)} | {secs:.1f} |")
+            rows.append(f"| pycamset cam {cam} | - | {rfx:.1f} / {rfy:.1f} | - | - | {verdict_of(code, data, last)} | - | {secs:.1f} |")
             continue
         K = np.array(data["camera_matrix"])
         rows.append(f"| pycamset cam {cam} (22 photos) | {K[0, 0]:.1f} / {K[1, 1]:.1f} | {rfx:.1f} / {rfy:.1f} (authors) | "
-                    f"{(K[0, 0] / rfx - 1) * 100:+.2f}% | {data['frames_used']} | {verdict_of(code, data, last)} | {secs:.1f} |")
+                    f"{(K[0, 0] / rfx - 1) * 100:+.2f}% | {data['frames_used']} | {verdict_of(code, data, last)} | "
+                    f"{board_pattern(data)} | {secs:.1f} |")
+        patterns[cam] = {int(i): np.array([dx, dy]) for i, dx, dy in data["residual_structure"]["board_corner_residuals_mm"]}
     video = args.data / "caliscope_webcam_charuco_4x5" / "video" / "cam_0.mp4"
     code, data, last, secs = calibrate(video, CALISCOPE_BOARD)
     model = data["model"] if data else "pinhole"
@@ -110,13 +127,26 @@ def main() -> int:
     fx = f"{np.array(data['camera_matrix'])[0, 0]:.1f} ({model})" if data else "-"
     off = f"{(np.array(data['camera_matrix'])[0, 0] / plain - 1) * 100:+.2f}% (vs plain)" if data else "-"
     rows.append(f"| caliscope webcam cam_0 (48 frames, inverted print) | {fx} | {plain:.1f} (plain OpenCV, same model; no "
-                f"published reference) | {off} | {data['frames_used'] if data else '-'} | {verdict_of(code, data, last)} | {secs:.1f} |")
+                f"published reference) | {off} | {data['frames_used'] if data else '-'} | {verdict_of(code, data, last)} | "
+                f"{board_pattern(data)} | {secs:.1f} |")
     code, data, last, secs = calibrate(args.data / "wpical_phone_video_charuco_12x8" / "testcalibration.mp4", WPICAL_BOARD)
     fx = f"{np.array(data['camera_matrix'])[0, 0]:.0f}" if data else "-"
     rows.append(f"| wpical phone video (fronto-parallel) | {fx} | not observable (1707-2198 by method) | - | "
-                f"{data['frames_used'] if data else '-'} | {verdict_of(code, data, last)}; refusal expected | {secs:.1f} |")
+                f"{data['frames_used'] if data else '-'} | {verdict_of(code, data, last)}; refusal expected | "
+                f"{board_pattern(data)} | {secs:.1f} |")
     code, data, last, secs = calibrate(args.data / "boofcv_sony_hx5v_chess", [])
-    rows.append(f"| boofcv chessboard photos | - | BoofCV's | - | - | {verdict_of(code, data, last)}; a clear error expected | {secs:.1f} |")
+    rows.append(f"| boofcv chessboard photos | - | BoofCV's | - | - | {verdict_of(code, data, last)}; a clear error expected | - | "
+                f"{secs:.1f} |")
+    rows += ["", "The same board seen by pycamset's three cameras: correlation of the per-corner mean residuals on the "
+             "board (x and y of every corner judged in both; a print error is the same whichever camera looks)", "",
+             "| cameras | corners in both | correlation |", "|---|---|---|"]
+    for a, b in (("1", "2"), ("1", "3"), ("2", "3")):
+        if a in patterns and b in patterns:
+            common = sorted(set(patterns[a]) & set(patterns[b]))
+            x = np.concatenate([patterns[a][i] for i in common]) if common else np.zeros(0)
+            y = np.concatenate([patterns[b][i] for i in common]) if common else np.zeros(0)
+            r = float(np.corrcoef(x, y)[0, 1]) if len(common) >= 3 else float("nan")
+            rows.append(f"| {a} and {b} | {len(common)} | {r:.2f} |")
     text = "\n".join(rows)
     (ROOT / "results" / "real_captures.md").write_text(text + "\n")
     print(text)

@@ -34,6 +34,8 @@ PICTURE_CAPTIONS = {
     "tilt_distance.png": ("Tilt and distance", "Views per tilt direction and distance against what the method needs."),
     "tilt_histogram.png": ("Tilts used", "How far the board was tilted in the frames the solve used."),
     "residuals.png": ("Residuals", "Reprojection error of every corner over the image: a pattern here is a model that does not fit."),
+    "board_residuals.png": ("Residuals on the board", "Each board corner's error averaged over the poses that saw it: "
+                            "long arrows that agree are the board off its spec (not flat, printed unevenly)."),
     "per_frame_errors.png": ("Per-frame errors", "RMS reprojection error of each frame used."),
     "uncertainty.png": ("Uncertainty", "Expected projection error of this calibration over the image, against its target."),
     "undistorted_check.png": ("Undistortion check", "One frame undistorted with the result: the board's lines should be straight."),
@@ -147,6 +149,11 @@ def _numbers_section(payload: Mapping[str, Any]) -> str:
     ]
     if choice:
         summary.append(["model choice", _e(choice.get("reason", ""))])
+    structure = payload.get("residual_structure")
+    if structure:
+        summary.append(["residual fixed to the board / the image",
+                        _fixed_cell(structure, "board", f" ({_f(structure.get('board_fixed_um'), 1)} um on the board)")
+                        + " / " + _fixed_cell(structure, "image", "")])
     matrix = _table([[f"#{K[r, c]:.4f}" for c in range(3)] for r in range(3)])
     coeffs = _table([[_e(n), f"#{dist[i]:.6g}", f"#{std[n]:.3g}" if n in std else "&ndash;"] for i, n in enumerate(names)],
                     header=("coefficient", "value", "1-sigma"))
@@ -155,6 +162,13 @@ def _numbers_section(payload: Mapping[str, Any]) -> str:
                    header=("intrinsic", "px", "1-sigma"))
     return ('<section id="numbers"><h2>The numbers</h2>' + _table(summary)
             + "<h3>Camera matrix</h3>" + matrix + focal + "<h3>Distortion coefficients</h3>" + coeffs + "</section>")
+
+
+def _fixed_cell(structure: Mapping[str, Any], where: str, extra: str) -> str:
+    """A residual pattern's size and its ratio to noise (residual_structure.py), in red when flagged."""
+    text = (f"{_f(structure.get(f'{where}_fixed_px'))} px{extra}, "
+            f"{_f(structure.get(f'{where}_fixed_ratio'), 1)}x noise's variance")
+    return f'<span class="bad">{text}</span>' if structure.get(f"{where}_fixed") else text
 
 
 def _frames_section(payload: Mapping[str, Any]) -> str:

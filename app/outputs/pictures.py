@@ -17,6 +17,7 @@ import numpy as np
 
 from calibcoach.app.outputs.charts import bars_picture, per_frame_error_picture
 from calibcoach.app.outputs.drawing import (
+    BAD,
     GOOD,
     HATCH,
     INK,
@@ -34,12 +35,16 @@ from calibcoach.app.outputs.drawing import (
     text_width,
 )
 from calibcoach.app.outputs.files import atomic_write_bytes
+from calibcoach.app.solve.residual_structure import ResidualStructure
 from calibcoach.app.solve.result import UncertaintyMap
+from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.errors import CalibcoachError
 from calibcoach.drivers.lens import CameraModel
 
 __all__ = [
     "bars_picture",
+    "board_pattern_picture",
+    "board_residual_picture",
     "coverage_picture",
     "per_frame_error_picture",
     "residual_map_picture",
@@ -206,6 +211,68 @@ def residual_map_picture(
     put_text(img, f"= {fmt(sample)} px residual: arrows are {how}{shown}", (panel.x + length + 12, y_legend), scale=0.5)
     legend(img, panel.x, img.shape[0] - 14, [("hatch", HATCH, "no corners in the cell"), ("line", INK, "residual (observed - projected), from the corner")])
     return img
+
+
+def board_residual_picture(corners_m: np.ndarray, means_mm: np.ndarray, board_size_m: tuple[float, float], square_m: float,
+                           *, flagged: bool, summary: str) -> np.ndarray:
+    """Each board corner's residual averaged over the poses that saw it, as an exaggerated arrow on the board.
+
+    Noise averages out over poses, so a good board shows short arrows every which way; long arrows
+    that agree in a region (or swirl, or grow towards an edge) are the board itself off its spec:
+    not flat, or printed unevenly (`residual_structure.py`).
+
+    Args:
+        corners_m: (K, 2) the corners' (x, y) on the board, metres.
+        means_mm: (K, 2) their mean residual on the board, millimetres.
+        board_size_m: (width, height) of the board's squares area, metres.
+        square_m: the square side, metres (the checker drawn underneath).
+        flagged: draw the arrows in red (the pattern was called out).
+        summary: the subtitle (the pattern's size against noise).
+
+    Returns:
+        (H, W, 3) uint8 BGR picture, W >= 1000.
+    """
+    corners = np.asarray(corners_m, np.float64).reshape(-1, 2)
+    means = np.asarray(means_mm, np.float64).reshape(-1, 2)
+    width_m, height_m = board_size_m
+    scale = min(760.0 / width_m, 560.0 / height_m)  # display px per metre
+    x0, y0 = 60, TITLE_H + 30
+    img = new_canvas(1000, int(y0 + height_m * scale + 80), "Residuals on the board, averaged over poses", summary)
+    columns, rows = int(round(width_m / square_m)), int(round(height_m / square_m))
+    for r in range(rows):
+        for c in range(columns):
+            if (r + c) % 2 == 0:
+                p0 = (int(x0 + c * square_m * scale), int(y0 + r * square_m * scale))
+                p1 = (int(x0 + (c + 1) * square_m * scale), int(y0 + (r + 1) * square_m * scale))
+                cv2.rectangle(img, p0, p1, (228, 228, 228), -1)
+    cv2.rectangle(img, (x0, y0), (int(x0 + width_m * scale), int(y0 + height_m * scale)), INK, 1)
+    lengths = np.hypot(means[:, 0], means[:, 1])
+    p95 = float(np.percentile(lengths, 95)) if lengths.size else 0.0
+    factor = _nice_factor(0.9 * square_m / (p95 * 1e-3)) if p95 > 0 else 1.0  # the longest arrows about a square
+    colour = BAD if flagged else INK
+    for (x, y), (dx, dy) in zip(corners, means, strict=True):
+        start = (int(round(x0 + x * scale)), int(round(y0 + y * scale)))
+        end = (int(round(start[0] + dx * 1e-3 * factor * scale)), int(round(start[1] + dy * 1e-3 * factor * scale)))
+        cv2.circle(img, start, 2, colour, -1, cv2.LINE_AA)
+        cv2.arrowedLine(img, start, end, colour, 2 if flagged else 1, cv2.LINE_AA, tipLength=0.25)
+    sample_mm = _nice_factor(70 / (factor * 1e-3 * scale))
+    length = int(round(sample_mm * 1e-3 * factor * scale))
+    y_legend = img.shape[0] - 30
+    cv2.arrowedLine(img, (x0, y_legend - 5), (x0 + length, y_legend - 5), colour, 2, cv2.LINE_AA, tipLength=0.2)
+    put_text(img, f"= {fmt(sample_mm * 1000)} um on the board (arrows exaggerated {fmt(factor)}x); {len(corners)} corners "
+             "seen in 3 or more poses", (x0 + length + 12, y_legend), scale=0.5)
+    return img
+
+
+def board_pattern_picture(structure: ResidualStructure, board: BoardSpec) -> np.ndarray:
+    """`board_residual_picture` of a solve's `residual_structure` on its board."""
+    side_m = board.square_mm * 1e-3
+    verdict = "the board is off its spec" if structure.board.flagged else "within what noise explains"
+    return board_residual_picture(
+        structure.board_corners_m, structure.board_means_mm, (board.squares_x * side_m, board.squares_y * side_m), side_m,
+        flagged=structure.board.flagged,
+        summary=f"fixed part {fmt(structure.board_rms_mm * 1000)} um ({fmt(structure.board.rms_px)} px) per coordinate, "
+                f"{fmt(structure.board.ratio)}x the variance noise leaves; {verdict}")
 
 
 def _grid_coordinates(values_px: np.ndarray, grid_px: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from calibcoach.app.outputs.files import (
 from calibcoach.app.outputs.html_report import REPORT_NAME, write_html_report
 from calibcoach.app.outputs.pictures import (
     bars_picture,
+    board_pattern_picture,
     coverage_picture,
     per_frame_error_picture,
     residual_map_picture,
@@ -100,6 +101,8 @@ def write_session_outputs(
         )
         payload["uncertainty"]["target_px"] = result.target_px
         payload["uncertainty"]["noise_px"] = result.noise_px
+        if result.residual_structure is not None:
+            payload["residual_structure"] = result.residual_structure.summary()
         written.append(write_calibration_json(out_dir / "calibration.json", payload))
         if result.verdict.trusted or accept_partial:
             written += _camera_files(out_dir, result, camera_name=source_info.camera_id or "camera")
@@ -213,6 +216,9 @@ def _pictures(out_dir: Path, result: SessionResult, pool: ThreadPoolExecutor) ->
         ("per_frame_errors.png", lambda: per_frame_error_picture(labels, cal.per_view_rms_px)),
         ("uncertainty.png", lambda: uncertainty_picture(result.uncertainty, target_px=result.target_px, image_size=size)),
     ]
+    structure = result.residual_structure
+    if structure is not None and structure.board.judged:
+        drawings.append(("board_residuals.png", lambda: board_pattern_picture(structure, result.board)))
     if result.check_image is not None:
         check = result.check_image
         drawings.append(("undistorted_check.png", lambda: undistorted_check_picture(check, cal.camera)))

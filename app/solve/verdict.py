@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calibcoach.app.solve.residual_structure import ResidualStructure
 from calibcoach.app.solve.result import Calibration, UncertaintyMap, Verdict
 
 REFERENCE_DIAGONAL_PX = float(np.hypot(1280, 720))  # the method's thresholds are for ~720p
@@ -83,12 +84,17 @@ def judge(
     image_size: tuple[int, int],
     noise_px: float,
     target_px: float | None = None,
+    structure: ResidualStructure | None = None,
 ) -> Verdict:
     """Grade a calibration; `trusted` is False when coverage or E is not good enough.
 
     Args:
         noise_px: corner noise per coordinate the solve measured (`robust.noise_sigma_px`).
         target_px: E target; None derives it from `noise_px` (`error_target_px`).
+        structure: the residuals' patterns fixed to the board or the image (`residual_structure`);
+            a flagged one is named with what to do about it. It does not change the grade: the
+            coverage and E say how well the data pins the model down, this says what the model
+            had to absorb.
     """
     thresholds = rms_thresholds_px(image_size)
     grade_rms = rms_grade(calibration.rms_px, thresholds)
@@ -117,7 +123,17 @@ def judge(
         reasons.append(f"The {where}, above its {target:.3f} px target.")
     else:
         reasons.append(f"The {where}, within its {target:.3f} px target.")
-    if noise_px > NOISY_CORNERS_PX * max(resolution_scale(image_size), 1.0):
+    # the board's own error is most of the corner residual: better light would not lower it
+    board_limits = structure is not None and structure.board.flagged and structure.board.rms_px**2 >= 0.5 * noise_px**2
+    if structure is not None:
+        reasons += _structure_words(structure, calibration.camera.model)
+    if board_limits and structure is not None:
+        reasons.append(
+            f"What limits it: the board itself. Of the corner residual of {noise_px:.2f} px per coordinate, "
+            f"{structure.board.rms_px:.2f} px repeats at the same board corners (above); light, exposure or focus "
+            "will not lower that part."
+        )
+    elif noise_px > NOISY_CORNERS_PX * max(resolution_scale(image_size), 1.0):
         reasons.append(
             f"What limits it: corner noise of {noise_px:.2f} px per coordinate (a sharp, well-lit board gives < 0.1 px); "
             "more light or a shorter exposure, a focused lens, a larger board or closer views would lower it."
@@ -126,7 +142,7 @@ def judge(
         reasons.append(f"{len(calibration.dropped_frames)} outlier frames were dropped before the final solve.")
     if not trusted:
         reasons.append(_what_to_do(coverage_short=coverage_completeness < MIN_COVERAGE_TO_TRUST, excess=E / trust_limit,
-                                   noise_px=noise_px))
+                                   noise_px=noise_px, board_limits=board_limits))
         return Verdict("insufficient", False, grade_rms, tuple(reasons), thresholds)
     grade = grade_rms
     if coverage_completeness < 0.999 or E > target:
@@ -135,22 +151,49 @@ def judge(
     return Verdict(grade, True, grade_rms, tuple(reasons), thresholds)
 
 
-def _what_to_do(*, coverage_short: bool, excess: float, noise_px: float) -> str:
+def _what_to_do(*, coverage_short: bool, excess: float, noise_px: float, board_limits: bool = False) -> str:
     """The refusal's last sentence: what would make the next capture trusted.
 
     With coverage short, the views it lacks (they also bring E down). With coverage enough and E
     over its bound by `excess`, the two things E follows: it falls as one over the square root of
     the number of distinct board poses and in proportion to the corner noise, so either remedy is
     named with the factor it needs (a dim capture that covered what it must is not told to look
-    for views it already has).
+    for views it already has). `board_limits`: most of the corner residual is the board's own
+    error, so the noise is lowered by a board that matches its spec, not by light.
     """
     if coverage_short:
         return "Do not use this calibration: capture the missing views (the guidance says where) and run again."
     return (f"Do not use this calibration: E must come down {excess:.1f}x. It falls with the square root of the "
             f"number of distinct board poses and in proportion to the corner noise, so "
             f"about {excess * excess:.1f}x as many distinct poses (new holds: the frames of one hold count together), or "
-            f"corner noise {excess:.1f}x lower than its {noise_px:.2f} px (more light, a shorter exposure, sharper "
-            "focus), would do it.")
+            f"corner noise {excess:.1f}x lower than its {noise_px:.2f} px ("
+            + ("most of it is the board's own error: a flat board that matches its spec" if board_limits
+               else "more light, a shorter exposure, sharper focus") + "), would do it.")
+
+
+def _structure_words(structure: ResidualStructure, model: str) -> list[str]:
+    """A sentence for a residual pattern fixed to the board, else for one fixed to the image.
+
+    A flawed board, seen from poses that keep it near one place in the image, also leaves a
+    pattern in the image; the board is then named alone, as the likelier cause.
+    """
+    board, image = structure.board, structure.image
+    if board.flagged:
+        return [
+            f"The residuals repeat at the same board corners from pose to pose: {structure.board_rms_mm * 1000:.0f} um "
+            f"on the board ({board.rms_px:.2f} px per coordinate) that no pose explains, {board.ratio:.1f}x the variance "
+            "noise would leave. The board is not the one the spec describes (not flat, or printed unevenly: stretched "
+            "along one side, say), and the lens model absorbs part of it: measure the squares along both sides "
+            "(--square-mm, --marker-mm) and mount the print flat (glass, aluminium); more frames will not remove it."
+        ]
+    if image.flagged:
+        return [
+            f"The residuals cluster in the image: {image.rms_px:.2f} px per coordinate at the same places whichever "
+            f"corner lands there, {image.ratio:.1f}x the variance noise would leave. The {model} model does not follow "
+            "this lens everywhere (or a rolling shutter skews a moving board): see residuals.png, and try another "
+            "--model."
+        ]
+    return []
 
 
 def _missing_words(missing: dict[str, list]) -> str:

@@ -108,7 +108,7 @@ def test_the_demo_report_in_a_real_browser(recordings_dir: Path, tmp_path: Path)
     assert worst["name"] in page["frames"]  # the worst frame named
     assert page["command"].startswith("calibcoach calibrate ") and "demo_webcam720_careful" in page["command"]
     names = sorted(p.name for p in out.glob("*.png"))
-    assert len(page["images"]) == len(names) == 7  # coverage, tilt x2, residuals, per-frame, uncertainty, check image
+    assert len(page["images"]) == len(names) == 8  # coverage, tilt x2, residuals on the image and the board, per-frame, uncertainty, check image
     for img in page["images"]:
         assert img["src"] == "data:image/png;base64,"
         assert img["w"] >= 1000 and img["h"] > 100 and img["shown"] > 0, img  # decoded (every picture is >= 1000 px wide)

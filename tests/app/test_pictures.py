@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from calibcoach.app.outputs import pictures
-from calibcoach.app.outputs.drawing import BAD, FONT, GOOD, NEUTRAL, colourise, nice_ticks
+from calibcoach.app.outputs.drawing import BAD, FONT, GOOD, INK, NEUTRAL, colourise, nice_ticks
 from calibcoach.app.outputs.pictures import (
     FADE,
     bars_picture,
+    board_residual_picture,
     coverage_picture,
     per_frame_error_picture,
     residual_map_picture,
@@ -101,6 +102,24 @@ def test_residual_map_colours_cells_by_mean_length_and_draws_arrows() -> None:
     assert np.any(still != img)
     with pytest.raises(ValueError, match="must have the same shape"):
         residual_map_picture(SIZE, pts, res[:5])
+
+
+def test_board_residuals_are_arrows_on_the_board_red_when_the_board_is_off_its_spec() -> None:
+    grid = np.stack(np.meshgrid(np.arange(1, 8), np.arange(1, 11)), axis=-1).reshape(-1, 2) * 0.03  # 70 corners, m
+    means = np.where(grid[:, :1] > 0.12, [[0.05, 0.0]], [[-0.05, 0.0]])  # the right half stretched: mm
+    flagged = board_residual_picture(grid, means, (0.24, 0.33), 0.03, flagged=True, summary="off its spec")
+    assert_picture(flagged)
+    red = np.all(flagged == BAD, axis=2)
+    assert red.sum() > 70 * 20  # 70 arrows of ~a square's length, drawn 2 px wide
+    # each arrow starts at its corner and points its way: stretched outwards the arrows reach further
+    # out on both sides than the same arrows pointing inwards
+    inwards = board_residual_picture(grid, -means, (0.24, 0.33), 0.03, flagged=True, summary="off its spec")
+    out_x = np.nonzero(red[:-60].any(axis=0))[0]  # above the legend's arrow
+    in_x = np.nonzero(np.all(inwards[:-60] == BAD, axis=2).any(axis=0))[0]
+    assert out_x.min() < in_x.min() - 30 and out_x.max() > in_x.max() + 30
+    calm = board_residual_picture(grid, means, (0.24, 0.33), 0.03, flagged=False, summary="noise")
+    assert not np.any(np.all(calm == BAD, axis=2))
+    assert np.all(calm == INK, axis=2).sum() > 70 * 8
 
 
 def test_per_frame_error_marks_dropped_and_above_threshold_frames() -> None:
