@@ -37,9 +37,10 @@ MIN_POSES = 3
 MIN_CORNERS = 20
 MIN_CELLS = 10
 # Flagged when the fixed part's variance is at least twice what noise explains: 3-4 standard
-# deviations of the ratio above 1, which noise alone does not reach (simulated flat boards and
-# lenses their model fits, 11 captures: 0.66-1.50); a real board of 4 mm squares, seen by three
-# cameras, read 3.3-8.1 (11-12 um, the same pattern from each camera: bench/real_captures.py).
+# deviations of the ratio above 1, which noise alone does not reach (11 renders of flat boards
+# through lenses their model fits: board 0.78-1.13, image 0.68-1.50; bench/residual_patterns.py);
+# a real board of 4 mm squares, seen by three cameras, read 3.3-8.1 (11-12 um, the same pattern
+# from each camera: bench/real_captures.py).
 FIXED_RATIO = 2.0
 # ... and when the fixed part is large enough to matter: 0.05 px per coordinate moves a corner by
 # less than a sharp camera's own corner noise (~0.05-0.1 px), so a pattern under it is reported
