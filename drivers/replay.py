@@ -27,6 +27,7 @@ import numpy as np
 from calibcoach.drivers.avi_mjpg import MjpgIndex, decode_packet, mjpg_index, read_packet
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
 from calibcoach.drivers.errors import SourceError
+from calibcoach.drivers.image_header import header_size
 from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.recording import SESSION_FILE, read_session
 
@@ -229,9 +230,11 @@ class VideoFileSource(FrameSource):
 class ImageFolderSource(FrameSource):
     """The images of one folder in natural order (cal2 before cal10), each a frame named by its file.
 
-    Hidden files (".DS_Store", macOS "._cal1.png") are ignored. Images that do not decode, or whose
-    size differs from the first decodable image's, go to `skipped` with the reason. Without `fps`,
-    timestamps advance at 30 fps (info.fps stays None so nobody mistakes it for a measured rate).
+    Hidden files (".DS_Store", macOS "._cal1.png") are ignored. The camera's resolution is the one
+    most images have (read from PNG and JPEG headers; the first decodable image's when no header
+    tells), so a stray screenshot sorted first does not disqualify the rest. Images that do not
+    decode, or of another size, go to `skipped` with the reason. Without `fps`, timestamps advance
+    at 30 fps (info.fps stays None so nobody mistakes it for a measured rate).
     """
 
     def __init__(self, path: str | Path, *, fps: float | None = None) -> None:
@@ -247,9 +250,19 @@ class ImageFolderSource(FrameSource):
         )
         if not self._files:
             raise SourceError(_no_images_message(self.path))
+        sizes = [header_size(path) for path in self._files]
+        counts = Counter(size for size in sizes if size is not None)
+        majority = max(counts, key=lambda size: (counts[size], -sizes.index(size))) if counts else None
         first, first_path = next(
-            ((image, path) for path in self._files if (image := _read_image(path)) is not None), (None, None))
-        self._first_name = "" if first_path is None else first_path.name
+            ((image, path) for path, size in zip(self._files, sizes, strict=True)
+             if (majority is None or size == majority) and (image := _read_image(path)) is not None), (None, None))
+        if first is None and majority is not None:  # the headers lied or those files are damaged: any image will do
+            first, first_path = next(
+                ((image, path) for path in self._files if (image := _read_image(path)) is not None), (None, None))
+        self._size_source = "" if first_path is None else (
+            f"{counts[majority]} of the {len(self._files)} images are"
+            if majority is not None and majority == (int(first.shape[1]), int(first.shape[0])) and counts[majority] > 1
+            else f"the first image ({first_path.name}) is")
         # One encoder wrote the folder: when its first image is a PNG the fast decoder handles, so are
         # the rest (and when not, none is tried: a failed try costs its inflate, ~1 ms).
         self._fast_png = first_path is not None and _fast_png_decodes(first_path, first)
@@ -287,7 +300,7 @@ class ImageFolderSource(FrameSource):
         size = (int(image.shape[1]), int(image.shape[0]))
         if size != self._image_size:
             return SkippedFrame(index, path.name, (
-                f"image is {size[0]}x{size[1]} but the first image ({self._first_name}) is "
+                f"image is {size[0]}x{size[1]} but {self._size_source} "
                 f"{self._image_size[0]}x{self._image_size[1]}; all images must share one camera resolution"))
         period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
         return Frame(index=index, timestamp_ns=round(index * period_ns), image=image, name=path.name)

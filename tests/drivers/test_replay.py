@@ -98,14 +98,37 @@ def test_corrupt_and_empty_files_are_skipped_with_reasons(tmp_path: Path) -> Non
     assert source.skipped[1].reason == "file is empty (0 bytes)"
 
 
-def test_size_mismatch_is_skipped_against_first_image(tmp_path: Path) -> None:
+def test_size_mismatch_is_skipped_against_the_folders_resolution(tmp_path: Path) -> None:
     _write_image(tmp_path / "a.png", 10)
     _write_image(tmp_path / "b.png", 20, size=(32, 24))
     _write_image(tmp_path / "c.png", 30)
     source = open_source(tmp_path)
     assert [f.name for f in source] == ["a.png", "c.png"]
     assert source.skipped == [SkippedFrame(1, "b.png", (
-        "image is 32x24 but the first image (a.png) is 64x48; all images must share one camera resolution"))]
+        "image is 32x24 but 2 of the 3 images are 64x48; all images must share one camera resolution"))]
+
+
+def test_a_stray_image_sorted_first_does_not_disqualify_the_rest(tmp_path: Path) -> None:
+    # a screenshot or a thumbnail named so that it sorts first, among a camera's JPEG and PNG frames
+    _write_image(tmp_path / "0_thumb.jpg", 10, size=(32, 24))
+    for i in range(1, 4):
+        _write_image(tmp_path / f"{i}.jpg", 20 * i)
+    _write_image(tmp_path / "4.png", 90)
+    source = open_source(tmp_path)
+    assert source.info.image_size == (WIDTH, HEIGHT)
+    assert [f.name for f in source] == ["1.jpg", "2.jpg", "3.jpg", "4.png"]
+    assert source.skipped == [SkippedFrame(0, "0_thumb.jpg", (
+        f"image is 32x24 but 4 of the 5 images are {WIDTH}x{HEIGHT}; all images must share one camera resolution"))]
+
+
+def test_without_sizes_in_the_headers_the_first_image_sets_the_resolution(tmp_path: Path) -> None:
+    _write_image(tmp_path / "a.bmp", 10, size=(32, 24))
+    _write_image(tmp_path / "b.bmp", 20)
+    _write_image(tmp_path / "c.bmp", 30)
+    source = open_source(tmp_path)
+    assert [f.name for f in source] == ["a.bmp"]
+    assert source.skipped[0].reason == ("image is 64x48 but the first image (a.bmp) is 32x24; all images must share "
+                                        "one camera resolution")
 
 
 def test_empty_folder_error_names_extensions(tmp_path: Path) -> None:
