@@ -56,12 +56,15 @@ def test_a_flat_board_and_a_fitting_lens_show_only_noise(seed: int) -> None:
     assert structure.board.rms_px < 0.02
 
 
-def test_a_board_off_its_spec_is_named_and_sized() -> None:
-    # every corner 0.15 mm (rms per coordinate) from where the spec puts it: a print stretched unevenly
-    rng = np.random.default_rng(7)
+def _misprinted(rms_m: float, seed: int) -> np.ndarray:
+    """The board with every corner moved in its plane by `rms_m` (per coordinate) from where the spec puts it."""
     offsets = np.zeros_like(BOARD)
-    offsets[:, :2] = rng.normal(0.0, 0.15e-3, (BOARD.shape[0], 2))
-    calibration, groups = _solved(BOARD + offsets, 11)
+    offsets[:, :2] = np.random.default_rng(seed).normal(0.0, rms_m, (BOARD.shape[0], 2))
+    return BOARD + offsets
+
+
+def test_a_board_off_its_spec_is_named_and_sized() -> None:
+    calibration, groups = _solved(_misprinted(0.15e-3, 7), 11)  # 0.15 mm: a print stretched unevenly
     structure = residual_structure(calibration, groups)
     assert structure.board.flagged, structure.summary()
     assert structure.board.ratio > 5.0
@@ -83,10 +86,7 @@ def test_a_pattern_fixed_to_the_image_is_told_from_the_board() -> None:
 def test_the_verdict_names_the_board_and_not_the_light() -> None:
     from calibcoach.app.solve.uncertainty import projection_uncertainty
 
-    rng = np.random.default_rng(3)
-    offsets = np.zeros_like(BOARD)
-    offsets[:, :2] = rng.normal(0.0, 0.4e-3, (BOARD.shape[0], 2))
-    calibration, groups = _solved(BOARD + offsets, 12)
+    calibration, groups = _solved(_misprinted(0.4e-3, 3), 12)
     structure = residual_structure(calibration, groups)
     uncertainty = projection_uncertainty(calibration.camera, calibration.intrinsic_covariance)
     noise = float(np.sqrt(np.mean(np.concatenate(calibration.residuals_px) ** 2)))
