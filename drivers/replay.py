@@ -87,6 +87,7 @@ class VideoFileSource(FrameSource):
         self.path = Path(path)
         self._max_failures = max(1, int(max_consecutive_failures))
         self._capture: cv2.VideoCapture | None = None
+        self._rotation_deg = 0  # the container's display rotation, not applied (see `_open`)
         if not self.path.is_file():
             raise SourceError(f"{self.path} is not a file; pass a video file")
         if self.path.stat().st_size == 0:
@@ -136,6 +137,12 @@ class VideoFileSource(FrameSource):
                 f"OpenCV cannot open {self.path} as a video (unknown or damaged format); convert it with ffmpeg "
                 f"(e.g. `ffmpeg -i {self.path.name} -c:v ffv1 out.mkv`) or pass a folder of images instead"
             )
+        # The frames as stored, the sensor's own pixel grid, as for photos (EXIF orientation ignored):
+        # FFmpeg would otherwise turn a phone's portrait video by its rotation tag, and the camera matrix
+        # would be for the turned picture (fx and fy, cx and cy swapped against the same phone's photos).
+        capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+        rotation = capture.get(cv2.CAP_PROP_ORIENTATION_META)
+        self._rotation_deg = int(round(rotation)) % 360 if math.isfinite(rotation) else 0
         return capture
 
     @property
@@ -143,8 +150,10 @@ class VideoFileSource(FrameSource):
         width, height = self._image_size
         fps = f"{self._fps:g} fps" if self._fps else "unknown fps"
         count = f"{self._frame_count} frames" if self._frame_count else "unknown length"
+        turned = (f"; stored as the sensor gives it, though its players show it turned {self._rotation_deg} deg: "
+                  "the calibration is for the stored frames" if self._rotation_deg else "")
         return SourceInfo(
-            description=f"video file {self.path.name} ({width}x{height}, {fps}, {count})",
+            description=f"video file {self.path.name} ({width}x{height}, {fps}, {count}{turned})",
             kind="video", image_size=self._image_size, fps=self._fps, frame_count=self._frame_count,
         )
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import struct
 from pathlib import Path
 
 import cv2
@@ -222,6 +223,30 @@ def test_video_round_trip(tmp_path: Path) -> None:
     assert [f.timestamp_ns for f in frames] == pytest.approx([i * 1e9 / 15 for i in range(12)], abs=1e3)
     assert source.skipped == []
     assert len(list(source)) == 12 and source.skipped == []  # reopening rewinds
+
+
+def test_a_rotation_tag_is_reported_not_applied(tmp_path: Path) -> None:
+    # a phone's portrait video: frames stored landscape, the MP4 track header says "show turned 90 deg"
+    writer = cv2.VideoWriter(str(tmp_path / "plain.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (WIDTH, HEIGHT))
+    assert writer.isOpened()
+    image = np.zeros((HEIGHT, WIDTH, 3), np.uint8)
+    image[:, : WIDTH // 4] = 255  # a bright band on the stored frame's left
+    for _ in range(6):
+        writer.write(image)
+    writer.release()
+    data = bytearray((tmp_path / "plain.mp4").read_bytes())
+    matrix = data.find(b"tkhd") + 44  # version-0 tkhd: its 3x3 display matrix follows 40 bytes of fields
+    assert struct.unpack(">9i", data[matrix : matrix + 36]) == (0x10000, 0, 0, 0, 0x10000, 0, 0, 0, 0x40000000)
+    data[matrix : matrix + 36] = struct.pack(">9i", 0, 0x10000, 0, -0x10000, 0, 0, 0, 0, 0x40000000)
+    (tmp_path / "portrait.mp4").write_bytes(bytes(data))
+    assert cv2.VideoCapture(str(tmp_path / "portrait.mp4")).read()[1].shape == (WIDTH, HEIGHT, 3)  # what FFmpeg would do
+    source = open_source(tmp_path / "portrait.mp4")
+    assert source.info.image_size == (WIDTH, HEIGHT)
+    assert "players show it turned 90 deg: the calibration is for the stored frames" in source.info.description
+    frames = list(source)
+    assert len(frames) == 6 and all(f.image.shape == (HEIGHT, WIDTH, 3) for f in frames)
+    assert frames[0].image[:, : WIDTH // 4 - 2].mean() > 200 and frames[0].image[:, WIDTH // 2 :].mean() < 40
+    assert "turned" not in open_source(tmp_path / "plain.mp4").info.description
 
 
 def test_video_frame_damaged_mid_stream_is_skipped(tmp_path: Path) -> None:
