@@ -24,7 +24,7 @@ All radiance is linear and relative: 1.0 is white paper under full light, before
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -168,6 +168,8 @@ class BoardRenderer:
         inverted: white-on-black print (every texel of the paper, margin included, is 1 - value).
         legacy: draw OpenCV's pre-4.6 pattern (differs from the new one for an even row count).
         background_seed: seed of the static background clutter.
+        print_warp: a print off its spec: maps (x, y) arrays on the paper (board frame, metres) to
+            the spec's (x, y) of what is printed there (None: printed exactly to spec).
 
     Example:
         >>> from calibcoach.coverage.board import BoardSpec  # doctest: +SKIP
@@ -184,6 +186,7 @@ class BoardRenderer:
         legacy: bool = False,
         *,
         background_seed: int = 0,
+        print_warp: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         if supersample < 1 or int(supersample) != supersample:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
@@ -197,6 +200,7 @@ class BoardRenderer:
         self.square_m = spec.square_mm / 1000.0
         self._texels_per_m = TEXTURE_PX_PER_SQUARE / self.square_m
         self._margin_m = self.square_m  # white paper around the chessboard: one square on each side
+        self._print_warp = print_warp
         self._levels = self._texture_pyramid()
 
     @property
@@ -268,6 +272,8 @@ class BoardRenderer:
         # 1/sqrt(cos incidence) (geometric mean of the stretched and unstretched directions).
         footprint = dist * self._rays.pixel_angle_rad[idx] * np.float32(self._texels_per_m) / np.sqrt(denom)
         level = np.clip(np.log2(np.maximum(footprint, 1.0)), 0.0, MIP_LEVELS - 1.0)
+        if self._print_warp is not None:
+            x_m, y_m = (np.asarray(a, np.float32) for a in self._print_warp(x_m, y_m))
         # Level-0 texel-edge coordinates; level k's pixel-centre coordinate is edge / 2^k - 0.5.
         u0 = (x_m + np.float32(self._margin_m)) * np.float32(self._texels_per_m)
         v0 = (y_m + np.float32(self._margin_m)) * np.float32(self._texels_per_m)
@@ -395,20 +401,21 @@ def render_board_view(
     vignetting: float = 0.0,
     motion_from: tuple[np.ndarray, np.ndarray] | None = None,
     seed: int = 0,
+    print_warp: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """One (H, W) uint8 grey image of the board at T_cam_board = (rvec (3,), tvec (3,) metres).
 
     A one-shot convenience over `BoardRenderer` + `expose` (the ray map is cached per camera,
     the texture is rebuilt per call). `motion_from` = (rvec0, tvec0): blur along the motion from
     that pose, with as many sub-frames as the image motion needs (2 px each, at most 8).
-    Defaults give a clean image: no blur, no noise, no vignetting.
+    Defaults give a clean image: no blur, no noise, no vignetting. `print_warp`: see `BoardRenderer`.
 
     Example:
         >>> image = render_board_view(LENSES["webcam720"], BoardSpec(), rvec, tvec)  # doctest: +SKIP
         >>> image.shape, image.dtype  # doctest: +SKIP
         ((720, 1280), dtype('uint8'))
     """
-    renderer = BoardRenderer(camera, spec, supersample, inverted, legacy)
+    renderer = BoardRenderer(camera, spec, supersample, inverted, legacy, print_warp=print_warp)
     poses = [(rvec, tvec)]
     if motion_from is not None:
         n = motion_subframes(camera, renderer.paper_corners_m(), motion_from, (rvec, tvec))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -22,6 +23,7 @@ from calibcoach.app.solve.verdict import judge
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.drivers.replay import open_source
 from calibcoach.drivers.sim import LENSES
+from calibcoach.drivers.sim_render import render_board_view
 
 from _synthetic import BOARD, IDS, SIZE, random_poses
 
@@ -108,3 +110,33 @@ def test_a_real_small_board_seen_by_a_machine_vision_camera(shared_data: Path) -
     assert structure is not None and structure.board.flagged, structure
     assert 0.005 < structure.board_rms_mm < 0.03
     assert any("repeat at the same board corners" in r for r in result.verdict.reasons)
+
+
+def _feed_slip(x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A printer whose paper feed slipped more and more down the sheet: what is printed at height y
+    is the spec's y - 0.012 y^2 / 1 m (0.45 mm short at the far edge of the 330 mm board's squares,
+    0.1 mm from the best straight stretch: a stretch alone is absorbed by the focal lengths)."""
+    return x_m, y_m - 0.012 * y_m * y_m
+
+
+def _photos(folder: Path, warp, count: int = 30) -> Path:
+    """`count` photos of the default board at diverse poses through the webcam, printed with `warp`."""
+    folder.mkdir()
+    for i, (r, t) in enumerate(random_poses(CAMERA, count, np.random.default_rng(21))):
+        image = render_board_view(CAMERA, BoardSpec(), r, t, blur_sigma_px=0.6, noise_sigma_dn=1.5, seed=i,
+                                  print_warp=warp)
+        cv2.imwrite(str(folder / f"{i:02d}.png"), image)
+    return folder
+
+
+@pytest.mark.parametrize(("warp", "off_spec"), [(None, False), (_feed_slip, True)])
+def test_a_print_off_its_spec_is_told_live_and_in_the_verdict(tmp_path: Path, warp, off_spec: bool) -> None:
+    hints: list[str] = []
+    session, _stats = run_replay(open_source(_photos(tmp_path / "photos", warp)), BoardSpec(),
+                                 on_outcome=lambda outcome, _frame: hints.append(outcome.guidance.hint))
+    result = session.finish()
+    assert result.residual_structure is not None
+    assert result.residual_structure.board.flagged is off_spec, result.residual_structure.summary()
+    said_live = any(h.startswith("The board is off its spec") for h in hints)
+    named = any("repeat at the same board corners" in r for r in result.verdict.reasons)
+    assert said_live is off_spec and named is off_spec
