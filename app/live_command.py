@@ -97,17 +97,26 @@ def lock_focus(args: argparse.Namespace, source: FrameSource, focus: Any | None)
 
 
 class LiveStatus:
-    """One status line for the person at the camera: progress, rate, and what to do next."""
+    """One status line for the person at the camera: progress, rate, and what to do next.
+
+    A hint about the capture itself (frames smeared or soft, the board off its spec) gets a line of
+    its own, once each time it changes: it is what to fix before following the next pose.
+    """
 
     def __init__(self, *, enabled: bool) -> None:
         self.enabled = enabled
         self.tty = sys.stderr.isatty()
         self._last = 0.0
         self._said = ""
+        self._hinted = ""
 
     def __call__(self, outcome: FrameOutcome, frame: Frame, stats: LiveStats) -> None:
         if not self.enabled:
             return
+        hint = outcome.guidance.hint
+        if hint and hint != self._hinted:
+            print(("\r" + " " * 200 + "\r" if self.tty else "") + f"calibcoach: {hint}", file=sys.stderr, flush=True)
+        self._hinted = hint
         now = time.perf_counter()
         guidance = outcome.guidance.sentence
         if now - self._last < (0.2 if self.tty else 3.0) and guidance == self._said:

@@ -232,3 +232,21 @@ def test_write_to_device_never_flashes_an_untrusted_calibration(recordings_dir: 
     assert code == 3
     err = capsys.readouterr().err
     assert "flashes trusted DepthAI calibrations only; the calibration is not trusted, nothing was flashed" in err
+
+
+def test_the_status_line_says_a_capture_hint_once_on_a_line_of_its_own(capsys: pytest.CaptureFixture[str]) -> None:
+    from types import SimpleNamespace
+
+    from calibcoach.app.live_command import LiveStatus
+
+    def outcome(hint: str) -> SimpleNamespace:
+        progress = SimpleNamespace(frames_accepted=3, coverage=0.4, expected_error_px=None, target_px=None)
+        return SimpleNamespace(guidance=SimpleNamespace(sentence="tilt the top away", hint=hint), progress=progress,
+                               decision=SimpleNamespace(reason="accepted"))
+
+    stats = SimpleNamespace(processed_fps=12.0, frames_dropped=0)
+    status = LiveStatus(enabled=True)
+    for hint in ("", "The board is off its spec: ...", "The board is off its spec: ...", "", "Most frames are soft: ..."):
+        status(outcome(hint), None, stats)  # type: ignore[arg-type]
+    said = [line for line in capsys.readouterr().err.splitlines() if line.startswith("calibcoach: ")]
+    assert said == ["calibcoach: The board is off its spec: ...", "calibcoach: Most frames are soft: ..."]
