@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 from accuracy import score, solve_plain  # noqa: E402  (bench modules beside this one)
 from heldout import detect_all  # noqa: E402
-from renders import CACHE, CELLS, capture_path  # noqa: E402
+from renders import CACHE, cached_renders, capture_path  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
@@ -136,9 +136,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("renders", nargs="*", help="cell:seed; default every render in bench/cache")
     args = parser.parse_args()
-    todo = [(r.split(":")[0], int(r.split(":")[1])) for r in args.renders] or sorted(
-        (cell, int(folder.name.rsplit("_s", 1)[1])) for cell in CELLS for folder in CACHE.glob(f"{cell}_s*")
-        if (folder / "truth.json").exists())
+    todo = [(r.split(":")[0], int(r.split(":")[1])) for r in args.renders] or cached_renders()
     rows = ["| render | views | detected: corner error, px per coordinate | error vs truth, px | masked: corner error | error vs truth |",
             "|---|---|---|---|---|---|"]
     for cell, seed in todo:

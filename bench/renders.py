@@ -70,6 +70,12 @@ CELLS: dict[str, Cell] = {
 SEEDS = (101, 102, 103, 104, 105)
 
 
+def cached_renders() -> list[tuple[str, int]]:
+    """(cell, seed) of every render already in bench/cache, sorted."""
+    return sorted((cell, int(folder.name.rsplit("_s", 1)[1])) for cell in CELLS for folder in CACHE.glob(f"{cell}_s*")
+                  if (folder / "truth.json").exists())
+
+
 def capture_path(name: str, seed: int) -> Path:
     """The folder calibcoach reads: the PNG folder, or the .avi for video cells."""
     folder = CACHE / f"{name}_s{seed}"

@@ -24,7 +24,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
-from renders import CACHE, CELLS, capture_path, render  # noqa: E402  (bench/renders.py)
+from renders import CELLS, cached_renders, capture_path, render  # noqa: E402  (bench/renders.py)
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.app.solve.residual_structure import FIXED_PX, FIXED_RATIO  # noqa: E402
@@ -39,9 +39,8 @@ def main() -> int:
     args = parser.parse_args()
     if args.cells or args.seeds:
         todo = [(cell, seed) for cell in args.cells or sorted(CELLS) for seed in args.seeds or [101]]
-    else:  # every render in the cache
-        todo = sorted((cell, int(folder.name.rsplit("_s", 1)[1])) for cell in CELLS
-                      for folder in CACHE.glob(f"{cell}_s*") if (folder / "truth.json").exists())
+    else:
+        todo = cached_renders()
     rows = ["| render | poses | board: corners judged | ratio | fixed px | image: cells judged | ratio | fixed px | flagged |",
             "|---|---|---|---|---|---|---|---|---|"]
     board_ratios, image_ratios, flagged = [], [], 0
