@@ -152,12 +152,13 @@ def _fixed_pattern(poses: np.ndarray, places: np.ndarray, values: np.ndarray,
                    least: int) -> tuple[FixedPattern, np.ndarray, np.ndarray]:
     """The F-like ratio and the fixed part's size of per-corner `values` (N, 2) at `places` (N,)
     seen in `poses` (N,); with the places judged (seen in >= MIN_POSES poses) and their mean value."""
-    # one pose's frames are averaged into one unit per place
-    units, unit_of = np.unique(poses * (int(places.max()) + 1) + places, return_inverse=True)
+    # one pose's frames are averaged into one unit per place (key: pose * stride + place)
+    stride = int(places.max()) + 1
+    units, unit_of = np.unique(poses * stride + places, return_inverse=True)
     unit_sum = np.zeros((units.size, 2))
     np.add.at(unit_sum, unit_of, values)
     unit_mean = unit_sum / np.bincount(unit_of, minlength=units.size)[:, None]
-    unit_place = units % (int(places.max()) + 1)
+    unit_place = units % stride
     place_ids, place_of, n = np.unique(unit_place, return_inverse=True, return_counts=True)
     place_sum = np.zeros((place_ids.size, 2))
     np.add.at(place_sum, place_of, unit_mean)
