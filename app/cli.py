@@ -162,6 +162,12 @@ def board_from_args(args: argparse.Namespace) -> BoardSpec:
     return BoardSpec.from_dict(values)
 
 
+def add_corner_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--corners", choices=("masked", "opencv"), default="masked",
+                        help="corners of the final solve: OpenCV's refined again on the checker's edges with the markers "
+                             "masked out (default; perspective lenses), or OpenCV's as detected")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="calibcoach",
@@ -187,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--every-frame", action="store_true",
                      help="detect each frame of a video or folder in full instead of tracking a held board from the frame "
                           "before (a board in transit is judged by the scene's change either way; see the README's held-frame scan)")
+    add_corner_argument(cal)
     cal.add_argument("--quiet", action="store_true", help="no progress line")
     add_viewer_arguments(cal, default="none")
     add_board_arguments(cal)
@@ -222,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     lv.add_argument("--no-stop", action="store_true", help="keep capturing after the stop rule is met")
     lv.add_argument("--write-to-device", action="store_true",
                     help="DepthAI: also flash the result into the camera's EEPROM (the old calibration is backed up)")
+    add_corner_argument(lv)
     lv.add_argument("--quiet", action="store_true", help="no status line")
     add_board_arguments(lv)
 

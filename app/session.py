@@ -153,7 +153,7 @@ class CalibrationSession(SessionFinish):
         for frame, detection in repeats:
             self.frames_seen += 1
             if usable and detection.corner_count >= self.settings.selector.min_corners and not self._drifted(frame.index):
-                self._reserve.append((frame_view(frame, detection), 1.0))
+                self._reserve.append((frame_view(frame, detection, self.board), 1.0))
 
     def sharp_enough(self, frame: Frame, detection: Detection, *, motion_px_s: float | None) -> bool:
         """Whether a tracked frame's own image passes the selector's smear and blur tests (`FrameSelector.unsharp`).
@@ -195,7 +195,7 @@ class CalibrationSession(SessionFinish):
             gated = Decision(False, "focus drift", "acceptance stopped: the lens moved since focus was locked", quality=0.0)
         if gated is None and self._done:
             gated = Decision(False, "frame limit", f"capture complete ({self.stop_reason})", quality=0.0)
-        blur = None
+        blur, edges = None, None
         if gated is None:
             edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
             blur = edges.sharp_px
@@ -210,10 +210,10 @@ class CalibrationSession(SessionFinish):
             decision, contribution = gated, None
         self.selector.record(decision)
         if not decision.accepted and decision.quality >= 1.0:
-            self._reserve.append((frame_view(frame, detection), decision.quality))  # usable later: see _fill_budget
+            self._reserve.append((frame_view(frame, detection, self.board, edges=edges), decision.quality))  # usable later: see _fill_budget
         if decision.accepted and contribution is not None:
             self.selector.commit(frame.index, detection, pose, contribution, blur_px=blur)
-            self.views.append(frame_view(frame, detection))
+            self.views.append(frame_view(frame, detection, self.board, edges=edges))
             if self._check_image is None or detection.corner_count > self._check_image[0]:
                 self._check_image = (detection.corner_count, frame.image)
             self._update_after_accept()

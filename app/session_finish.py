@@ -28,16 +28,23 @@ from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_l
 from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.candidates import ranges_for
+from calibcoach.coverage.corner_refine import refine_on_checker_edges
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose, estimate_poses
 from calibcoach.coverage.select import AcceptedView, LookAlikeTable, accepted_view, look_alike_groups
+from calibcoach.coverage.sharpness import EdgeBlur, edge_blur
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
 # Fewer kept frames than this and the live session has not solved yet (app/session.py solves from here on).
 MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
+# The final solve takes the masked-refined corners (View.refined_px) of lenses narrower than this
+# across: within half a square a perspective lens maps the board by a homography, which places the
+# markers' mask; at a fisheye's rim the edges bend within the window and the 150 deg renders came
+# out no better (bench/results/corner_masking.md), so a fisheye keeps OpenCV's corners.
+REFINED_CORNERS_BELOW_DEG = 120.0
 
 if TYPE_CHECKING:
     from calibcoach.app.session_types import SessionSettings
@@ -53,10 +60,19 @@ def view_detection(view: View) -> Detection:
                      np.zeros(0, np.int32))
 
 
-def frame_view(frame: Frame, detection: Detection) -> View:
-    """A detected frame as the solver takes it."""
-    return View(frame.index, frame.name, detection.ids.copy(), detection.corners_px.astype(np.float64),
-                detection.object_points_m.astype(np.float64), timestamp_ns=int(frame.timestamp_ns))
+def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, edges: EdgeBlur | None = None) -> View:
+    """A detected frame as the solver takes it, with its corners also refined on the checker's edges.
+
+    `edges`: the frame's edge widths where already measured; the refinement's mask keeps clear of
+    the markers' edges by twice the blurrier family's width.
+    """
+    corners = detection.corners_px.astype(np.float64)
+    grey = frame.grey()
+    blur = (edges or edge_blur(grey, corners, detection.object_points_m)).blur_px
+    refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
+                                      board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
+    return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
+                timestamp_ns=int(frame.timestamp_ns), refined_px=refined)
 
 
 
@@ -116,6 +132,10 @@ class SessionFinish:
         stage("frame budget")
         kept_live = list(self.views)
         self._fill_budget()
+        if self.settings.corners == "masked" and self.camera.field_of_view_deg()[0] < REFINED_CORNERS_BELOW_DEG:
+            kept_live = [v.as_refined() for v in kept_live]
+            self.views = [v.as_refined() for v in self.views]
+            self._repeats = [v.as_refined() for v in self._repeats]
         stage("model choice")
         distinct = self.views
         offered_views = sorted(self.views + self._repeats, key=lambda v: v.frame_index)

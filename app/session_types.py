@@ -63,6 +63,10 @@ class SessionSettings:
     # frames alone left the true error at 2-5x what every sharp frame of the same capture gives
     # (0.07-0.12 -> 0.022-0.031 px on a 784-frame 720p capture), and 400 frames solve in ~2.5 s.
     solve_frames: int = 400
+    # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
+    # the markers masked out: coverage/corner_refine.py; perspective lenses only, see
+    # session_finish.REFINED_CORNERS_BELOW_DEG) or "opencv" (as detectBoard returned them).
+    corners: str = "masked"
 
 
 @dataclass(frozen=True, slots=True)

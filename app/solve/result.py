@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +23,16 @@ class View:
     # so a group of k counts 1/k each. The solve itself uses every frame at full weight.
     information_weight: float = 1.0
     timestamp_ns: int | None = None  # the frame's capture time (source clock); None where unknown
+    # (N, 2) float64 the same corners refined on the checker's edges alone, markers masked out
+    # (coverage/corner_refine.py); None where not computed. The final solve of a perspective lens
+    # takes these (`as_refined`), the capture's incremental solves OpenCV's.
+    refined_px: np.ndarray | None = None
+
+    def as_refined(self) -> View:
+        """This view with its masked-refined corners as its observations (itself where it has none)."""
+        if self.refined_px is None:
+            return self
+        return replace(self, image_points_px=self.refined_px, refined_px=None)
 
 
 @dataclass(frozen=True, slots=True)

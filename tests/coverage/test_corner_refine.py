@@ -1,0 +1,65 @@
+"""Corners refined on the checker's edges with the markers masked: closer to the truth than OpenCV's."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.corner_refine import MAX_SHIFT_PX, refine_on_checker_edges
+from calibcoach.coverage.detector import CharucoBoardDetector
+from calibcoach.drivers.sim import LENSES
+from calibcoach.drivers.sim_render import render_board_view
+
+SPEC = BoardSpec()
+CAMERA = LENSES["webcam720"]
+SQUARE_M, MARKER_M = SPEC.square_mm / 1000.0, SPEC.marker_mm / 1000.0
+
+
+def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """T_cam_board of the board's centre on the optical axis, turned `tilt_deg` about its vertical axis."""
+    R = cv2.Rodrigues(np.array([np.radians(10.0), np.radians(tilt_deg), 0.0]))[0]
+    centre = np.array([*SPEC.size_mm, 0.0]) / 2000.0
+    return cv2.Rodrigues(R)[0].ravel(), np.array([0.0, 0.0, distance_m]) - R @ centre
+
+
+def _errors(tilt_deg: float, distance_m: float, seed: int = 1) -> tuple[float, float, np.ndarray, np.ndarray]:
+    rvec, tvec = _board_at(tilt_deg, distance_m)
+    image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.6, noise_sigma_dn=1.0, seed=seed)
+    detection = CharucoBoardDetector(SPEC).detect(image)
+    assert detection.corner_count >= 20
+    true = CAMERA.project(detection.object_points_m, rvec, tvec)
+    refined = refine_on_checker_edges(image, detection.corners_px, detection.object_points_m, SQUARE_M, MARKER_M)
+    rms = lambda points: float(np.sqrt(np.mean((points - true) ** 2)))  # noqa: E731
+    return rms(detection.corners_px), rms(refined), detection.corners_px, refined
+
+
+@pytest.mark.parametrize("tilt_deg", [40.0, 55.0])
+def test_tilted_board_corners_move_closer_to_the_truth(tilt_deg: float) -> None:
+    # Under a steep tilt the two markers' edges that OpenCV's window takes in pull unequally; the
+    # masked window sees the checker's edges alone. Measured: 0.041 -> 0.035 px at 40 deg, 0.056 -> 0.032 at 55.
+    detected, refined, _, _ = _errors(tilt_deg, 0.45)
+    assert refined < 0.9 * detected, (detected, refined)
+
+
+def test_frontal_board_corners_are_no_worse() -> None:
+    # Frontal, the markers' pulls cancel: there is little to remove, and the refinement must not add noise.
+    detected, refined, corners, moved = _errors(0.0, 0.45)
+    assert refined < 1.05 * detected, (detected, refined)
+    assert np.abs(moved - corners).max() < MAX_SHIFT_PX
+
+
+def test_corners_without_a_local_homography_keep_their_position() -> None:
+    rvec, tvec = _board_at(20.0, 0.6)
+    image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.6, seed=1)
+    detection = CharucoBoardDetector(SPEC).detect(image)
+    # three corners in an L: no four grid neighbours for any of them
+    picked = [0, 1, SPEC.squares_x - 1]
+    alone = refine_on_checker_edges(image, detection.corners_px[picked], detection.object_points_m[picked], SQUARE_M, MARKER_M)
+    np.testing.assert_array_equal(alone, detection.corners_px[picked].astype(np.float64))
+    # and a corner thrown 2 px off is not dragged back by more than MAX_SHIFT_PX: it stays where it was given
+    thrown = detection.corners_px.astype(np.float64).copy()
+    thrown[10] += (2.0, 0.0)
+    out = refine_on_checker_edges(image, thrown, detection.object_points_m, SQUARE_M, MARKER_M)
+    np.testing.assert_array_equal(out[10], thrown[10])
