@@ -42,6 +42,8 @@ _GRADIENT_SCALE = 1.0 / 8.0 if GRADIENT_KSIZE == 3 else 0.5
 # correction (the bias removed is hundredths of a pixel): the detected position is kept.
 MAX_SHIFT_PX = 0.5
 
+LOCAL_MAP = "quadratic"
+QUADRATIC_RIDGE = 1e-3
 _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.int64)  # (9, 2), (0, 0) at 4
 
 
@@ -53,9 +55,11 @@ def _general_position_table() -> np.ndarray:
     from which DLT returns a map that folds the window.
     """
     table = np.zeros(512, bool)
-    quads = [q for q in itertools.combinations(range(9), 4)
-             if all(abs(np.cross(_NEIGHBOURS[b] - _NEIGHBOURS[a], _NEIGHBOURS[c] - _NEIGHBOURS[a])) > 0
-                    for a, b, c in itertools.combinations(q, 3))]
+    def on_a_line(a: int, b: int, c: int) -> bool:
+        (x1, y1), (x2, y2) = _NEIGHBOURS[b] - _NEIGHBOURS[a], _NEIGHBOURS[c] - _NEIGHBOURS[a]
+        return x1 * y2 - x2 * y1 == 0
+
+    quads = [q for q in itertools.combinations(range(9), 4) if not any(on_a_line(*t) for t in itertools.combinations(q, 3))]
     for mask in range(512):
         table[mask] = any(all(mask >> i & 1 for i in q) for q in quads)
     return table
@@ -78,22 +82,45 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     if len(corners) < 4:
         return out
     grid = np.rint(np.asarray(object_points_m, np.float64).reshape(len(corners), -1)[:, :2] / square_m).astype(np.int64)
-    homographies, valid = _local_homographies(corners, grid)
+    if LOCAL_MAP == "quadratic":
+        coef, scale, axis_all, valid = _local_quadratic_maps(corners, grid)
+    else:
+        homographies, valid = _local_homographies(corners, grid)
     if not valid.any():
         return out
     index = np.flatnonzero(valid)
-    H = homographies[index]
     start = corners[index]
-    # px per square along the board's two axes at each corner (the homography's Jacobian at the origin)
-    jac = (H[:, :2, :2] - H[:, :2, 2:3] * H[:, 2:3, :2]) / H[:, 2:3, 2:3]
-    axis_px = np.linalg.norm(jac, axis=1)  # (M, 2): |d image / du|, |d image / dv|
+    if LOCAL_MAP == "quadratic":
+        axis_px = axis_all[index]
+        C, sc = coef[index], scale[index]
+
+        def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x = rel[..., 0] / sc[:, None].astype(np.float32)
+            y = rel[..., 1] / sc[:, None].astype(np.float32)
+            mono = (np.ones_like(x), x, y, x * x, x * y, y * y)
+            c = C.astype(np.float32)
+            u = sum(c[:, 0, k:k + 1] * mono[k] for k in range(6))
+            v = sum(c[:, 1, k:k + 1] * mono[k] for k in range(6))
+            return u, v
+    else:
+        H = homographies[index]
+        # px per square along the board's two axes at each corner (the homography's Jacobian at the origin)
+        jac = (H[:, :2, :2] - H[:, :2, 2:3] * H[:, 2:3, :2]) / H[:, 2:3, 2:3]
+        axis_px = np.linalg.norm(jac, axis=1)  # (M, 2): |d image / du|, |d image / dv|
+        Hinv = np.linalg.inv(H).astype(np.float32)
+
+        def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x, y = rel[..., 0], rel[..., 1]
+            z = Hinv[:, 2, 0:1] * x + Hinv[:, 2, 1:2] * y + Hinv[:, 2, 2:3]
+            return ((Hinv[:, 0, 0:1] * x + Hinv[:, 0, 1:2] * y + Hinv[:, 0, 2:3]) / z,
+                    (Hinv[:, 1, 0:1] * x + Hinv[:, 1, 1:2] * y + Hinv[:, 1, 2:3]) / z)
     half = int(np.clip(np.ceil(0.5 * axis_px.max()), MIN_HALF_WINDOW_PX, MAX_HALF_WINDOW_PX))
     border_squares = (square_m - marker_m) / 2.0 / square_m
     margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
     # the checker edge's own profile needs room between the mask and the edge (+-BAND_SIGMAS sigma)
     band_px = border_squares * axis_px.min(axis=1) - margin_px
     roomy = band_px >= BAND_SIGMAS * max(blur_sigma_px or 0.0, MIN_BLUR_MARGIN_PX / BLUR_MARGIN_SIGMAS)
-    refined, solved = _solve_on_pixels(grey, start, half, lambda rel: _window_weights(H, rel, axis_px, border_squares, margin_px))
+    refined, solved = _solve_on_pixels(grey, start, half, lambda rel: _window_weights(to_board, rel, axis_px, border_squares, margin_px))
     keep = solved & roomy & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = refined[keep]
     return out
@@ -134,20 +161,50 @@ def _local_homographies(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarr
     return H, valid
 
 
-def _window_weights(H: np.ndarray, rel: np.ndarray, axis_px: np.ndarray, border_squares: float,
-                    margin_px: float) -> np.ndarray:
+def _local_quadratic_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Image offset (px from the corner, over `scale`) -> board offset (squares), a quadratic per corner.
+
+    Returns (N, 2, 6) coefficients of 1, x, y, x^2, xy, y^2, (N,) scale, (N, 2) px per square
+    along u and v at the corner, and (N,) whether fitted. Least squares on the corner and its
+    detected 8-neighbours; a small ridge on the quadratic terms leaves them at zero where the
+    neighbours do not determine them (a border row), so the map falls back to affine there.
+    """
+    n = len(corners)
+    lo = grid.min(axis=0) - 1
+    shape = grid.max(axis=0) - lo + 2
+    lookup = np.full((shape[0], shape[1]), -1, np.int64)
+    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(n)
+    cells = grid[:, None, :] - lo + _NEIGHBOURS[None]
+    members = lookup[cells[..., 0], cells[..., 1]]
+    present = members >= 0
+    xy = np.where(present[..., None], corners[np.maximum(members, 0)] - corners[:, None, :], 0.0)
+    scale = np.maximum(np.sqrt((xy ** 2).sum(axis=2).sum(axis=1) / np.maximum(present.sum(axis=1) - 1, 1)), 1e-6)
+    x, y = xy[..., 0] / scale[:, None], xy[..., 1] / scale[:, None]
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=2) * present[..., None]  # (N, 9, 6)
+    b = _NEIGHBOURS[None].astype(np.float64) * present[..., None]  # (N, 9, 2)
+    ridge = np.diag([0.0, 0.0, 0.0, QUADRATIC_RIDGE, QUADRATIC_RIDGE, QUADRATIC_RIDGE])
+    coef = np.linalg.solve(A.transpose(0, 2, 1) @ A + ridge + 1e-12 * np.eye(6), A.transpose(0, 2, 1) @ b)  # (N, 6, 2)
+    coef = coef.transpose(0, 2, 1)  # (N, 2, 6)
+    # d(u, v)/d(x, y) at the corner, in px: its inverse's columns are the image steps of one square along u and v
+    jac = coef[:, :, 1:3] / scale[:, None, None]
+    det = np.linalg.det(jac)
+    pattern = (present * (1 << np.arange(9))).sum(axis=1)
+    valid = _GENERAL_POSITION[pattern] & (np.abs(det) > 1e-12) & np.isfinite(coef).all(axis=(1, 2))
+    steps = np.linalg.inv(np.where(valid[:, None, None], jac, np.eye(2)))
+    axis_px = np.linalg.norm(steps, axis=1)  # (N, 2)
+    return coef, scale, axis_px, valid
+
+
+def _window_weights(to_board: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], rel: np.ndarray, axis_px: np.ndarray,
+                    border_squares: float, margin_px: float) -> np.ndarray:
     """(M, P) weight of window pixels at `rel` (M, P, 2) px from each corner: gaussian in board units,
     zero in a marker's span or beyond half a square."""
-    Hinv = np.linalg.inv(H).astype(np.float32)  # float32: a 720p frame's windows are ~40k pixels
-    x, y = rel[..., 0], rel[..., 1]
-    z = Hinv[:, 2, 0:1] * x + Hinv[:, 2, 1:2] * y + Hinv[:, 2, 2:3]
-    u = (Hinv[:, 0, 0:1] * x + Hinv[:, 0, 1:2] * y + Hinv[:, 0, 2:3]) / z
-    v = (Hinv[:, 1, 0:1] * x + Hinv[:, 1, 1:2] * y + Hinv[:, 1, 2:3]) / z
+    u, v = to_board(rel)
     # A marker's span starts `border_squares` from the corner along each axis; its edge's blur reaches margin_px further in.
     edge_u = (border_squares - margin_px / axis_px[:, 0])[:, None]
     edge_v = (border_squares - margin_px / axis_px[:, 1])[:, None]
     in_marker = (np.abs(u) > edge_u) & (np.abs(v) > edge_v)
-    inside = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5) & (z > 0)
+    inside = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
     return np.exp((u * u + v * v) * np.float32(-0.5 / WEIGHT_SIGMA_SQUARES ** 2)) * (inside & ~in_marker)
 
 

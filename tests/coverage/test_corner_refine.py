@@ -9,6 +9,7 @@ import pytest
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.corner_refine import MAX_SHIFT_PX, refine_on_checker_edges
 from calibcoach.coverage.detector import CharucoBoardDetector
+from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.sim import LENSES
 from calibcoach.drivers.sim_render import render_board_view
 
@@ -24,12 +25,14 @@ def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarra
     return cv2.Rodrigues(R)[0].ravel(), np.array([0.0, 0.0, distance_m]) - R @ centre
 
 
-def _errors(tilt_deg: float, distance_m: float, seed: int = 1) -> tuple[float, float, np.ndarray, np.ndarray]:
+def _errors(tilt_deg: float, distance_m: float, *, noise_dn: float = 1.0, supersample: int = 2,
+            camera=CAMERA) -> tuple[float, float, np.ndarray, np.ndarray]:
     rvec, tvec = _board_at(tilt_deg, distance_m)
-    image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.6, noise_sigma_dn=1.0, seed=seed)
+    image = render_board_view(camera, SPEC, rvec, tvec, blur_sigma_px=0.6, noise_sigma_dn=noise_dn, seed=1,
+                              supersample=supersample)
     detection = CharucoBoardDetector(SPEC).detect(image)
     assert detection.corner_count >= 20
-    true = CAMERA.project(detection.object_points_m, rvec, tvec)
+    true = camera.project(detection.object_points_m, rvec, tvec)
     refined = refine_on_checker_edges(image, detection.corners_px, detection.object_points_m, SQUARE_M, MARKER_M)
     rms = lambda points: float(np.sqrt(np.mean((points - true) ** 2)))  # noqa: E731
     return rms(detection.corners_px), rms(refined), detection.corners_px, refined
@@ -43,21 +46,43 @@ def test_tilted_board_corners_move_closer_to_the_truth(tilt_deg: float) -> None:
     assert refined < 0.9 * detected, (detected, refined)
 
 
-def test_frontal_board_corners_are_no_worse() -> None:
-    # Frontal, the markers' pulls cancel: there is little to remove, and the refinement must not add noise.
-    detected, refined, corners, moved = _errors(0.0, 0.45)
-    assert refined < 1.05 * detected, (detected, refined)
+def test_frontal_board_corners_lose_the_pixel_locking() -> None:
+    # Frontal, noise-free, finely supersampled, a distortion-free lens: what is left of OpenCV's error
+    # is its bilinear resampling of sharp edges, a pull with each edge's sub-pixel phase; gradients
+    # taken at the pixels remove most of it (measured 0.046 -> 0.023 px).
+    pinhole = CameraModel("pinhole", CAMERA.camera_matrix, np.zeros(5), CAMERA.image_size)
+    detected, refined, corners, moved = _errors(0.0, 0.6, noise_dn=0.0, supersample=8, camera=pinhole)
+    assert refined < 0.7 * detected, (detected, refined)
     assert np.abs(moved - corners).max() < MAX_SHIFT_PX
+
+
+def test_a_board_too_blurred_for_its_squares_keeps_opencvs_corners() -> None:
+    # Squares of ~40 px put the markers' edges 5.4 px from the checker's; at an edge width of 1.5 px
+    # (what edge_blur reads on a soft frame) the mask would leave the checker's edge less than two
+    # widths each side: no mask separates them, so the corners are left as detected.
+    rvec, tvec = _board_at(20.0, 0.7)
+    image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=1.0, seed=1)
+    detection = CharucoBoardDetector(SPEC).detect(image)
+    assert detection.corner_count >= 20
+    out = refine_on_checker_edges(image, detection.corners_px, detection.object_points_m, SQUARE_M, MARKER_M,
+                                  blur_sigma_px=1.5)
+    np.testing.assert_array_equal(out, detection.corners_px.astype(np.float64))
 
 
 def test_corners_without_a_local_homography_keep_their_position() -> None:
     rvec, tvec = _board_at(20.0, 0.6)
     image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.6, seed=1)
     detection = CharucoBoardDetector(SPEC).detect(image)
-    # three corners in an L: no four grid neighbours for any of them
-    picked = [0, 1, SPEC.squares_x - 1]
+    # a corner, the two above and below it and one diagonal: four points, three on a line, from which
+    # no homography follows; none of the four has four neighbours in general position
+    grid = {tuple(np.rint(p[:2] / SQUARE_M).astype(int)): k for k, p in enumerate(detection.object_points_m)}
+    picked = [grid[(3, 4)], grid[(3, 3)], grid[(3, 5)], grid[(2, 3)]]
     alone = refine_on_checker_edges(image, detection.corners_px[picked], detection.object_points_m[picked], SQUARE_M, MARKER_M)
     np.testing.assert_array_equal(alone, detection.corners_px[picked].astype(np.float64))
+    # with a fifth off the line the centre corner has its homography and moves
+    picked.append(grid[(4, 5)])
+    five = refine_on_checker_edges(image, detection.corners_px[picked], detection.object_points_m[picked], SQUARE_M, MARKER_M)
+    assert np.any(five[0] != detection.corners_px[picked[0]])
     # and a corner thrown 2 px off is not dragged back by more than MAX_SHIFT_PX: it stays where it was given
     thrown = detection.corners_px.astype(np.float64).copy()
     thrown[10] += (2.0, 0.0)
