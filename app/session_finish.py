@@ -40,11 +40,6 @@ from calibcoach.drivers.lens import CameraModel
 
 # Fewer kept frames than this and the live session has not solved yet (app/session.py solves from here on).
 MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
-# The final solve takes the masked-refined corners (View.refined_px) of lenses narrower than this
-# across: within half a square a perspective lens maps the board by a homography, which places the
-# markers' mask; at a fisheye's rim the edges bend within the window and the 150 deg renders came
-# out no better (bench/results/corner_masking.md), so a fisheye keeps OpenCV's corners.
-REFINED_CORNERS_BELOW_DEG = 120.0
 
 if TYPE_CHECKING:
     from calibcoach.app.session_types import SessionSettings
@@ -132,7 +127,7 @@ class SessionFinish:
         stage("frame budget")
         kept_live = list(self.views)
         self._fill_budget()
-        if self.settings.corners == "masked" and self.camera.field_of_view_deg()[0] < REFINED_CORNERS_BELOW_DEG:
+        if self.settings.corners == "masked":  # see SessionSettings.corners
             kept_live = [v.as_refined() for v in kept_live]
             self.views = [v.as_refined() for v in self.views]
             self._repeats = [v.as_refined() for v in self._repeats]

@@ -64,8 +64,8 @@ class SessionSettings:
     # (0.07-0.12 -> 0.022-0.031 px on a 784-frame 720p capture), and 400 frames solve in ~2.5 s.
     solve_frames: int = 400
     # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
-    # the markers masked out: coverage/corner_refine.py; perspective lenses only, see
-    # session_finish.REFINED_CORNERS_BELOW_DEG) or "opencv" (as detectBoard returned them).
+    # the markers masked out: coverage/corner_refine.py) or "opencv" (as detectBoard returned them).
+    # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so).
     corners: str = "masked"
 
 

@@ -14,20 +14,19 @@ Decomposing each view's corner errors (detected - true) over the board:
   worse): OpenCV's ChArUco window stops 2 px short of the nearest *marker corner*, so it takes
   in the edges of the markers that sit in the two white squares; their gradients pull the corner.
 
-The masked refinement here keeps a window of half a square but gives zero weight to the pixels
-that lie, by the local board-to-image map from the neighbouring corners, inside a marker's span
-(less a 1.5 px blur margin): the checker's four edges only, Gaussian-weighted, iterated as
-cornerSubPix does. For each cached render: the replay's final views, their corners as detected
-and masked-refined in the same frames, each solved plainly (calibrateCamera, the truth's model
-family) and scored against the truth over the covered region (bench/heldout.py's yardstick).
+The masked refinement (coverage/corner_refine.py, which the final solve now uses) keeps a window
+of half a square but gives zero weight to the pixels that lie, by a local quadratic image-to-board
+map from the neighbouring corners, inside a marker's span (less twice the frame's edge blur):
+the checker's four edges only, Gaussian-weighted, on the gradients at the pixels themselves.
+For each render (or recording with truth.json): the replay's final views with OpenCV's corners
+(`--corners opencv`), the same corners masked-refined in the same frames with a fixed 1.5 px
+margin and with the blur-wide margin the pipeline uses, each solved plainly (calibrateCamera,
+the truth's model family) and scored against the truth over the covered region (bench/heldout.py's
+yardstick).
 
-    .venv/bin/python bench/corner_masking.py [careful720_png:104 dim720_mjpg:101 ...]
+    .venv/bin/python bench/corner_masking.py [careful720_png:104 recordings/demo_webcam720_careful ...]
 
-Writes bench/results/corner_masking.md. The refinement is a per-corner Python loop here (~70 ms a
-720p frame of 70 corners); vectorized over a frame's corners (one remap per iteration for all the
-windows) it took ~20 ms, still too much for the ~400 frames a replay judges usable, so it is not
-yet in calibcoach's pipeline: sampling only the unmasked pixels (~40% of each window), fewer
-iterations and the affine from the grid neighbours should bring it to a few ms.
+Writes bench/results/corner_masking.md.
 """
 
 from __future__ import annotations

@@ -6,14 +6,20 @@ two white squares around the corner. Their gradients pull the corner; on a front
 pulls cancel, under perspective they do not, and the leftover is a smooth per-view pattern over
 the board (0.015 px rms on the careful bench renders) that is the same in sign across views, so
 averaging frames does not remove it: it carried the whole 0.07 px error of two of five renders
-(bench/corner_masking.py, bench/results/corner_masking.md).
+(bench/corner_masking.py, bench/results/corner_masking.md). cornerSubPix also resamples its
+window bilinearly, which pulls a sharp edge toward or away from the pixel centres with its
+sub-pixel phase (up to 0.04 px on noise-free renders).
 
 `refine_on_checker_edges` solves cornerSubPix's equations again (each pixel's gradient is normal
-to the line from the corner through it) over a window of half a square, weighting out the pixels
-that the local board-to-image homography (fitted to the corner's grid neighbours) puts inside a
-marker's span, less a margin for the edges' blur: only the four checker edges meeting at the
-corner pull it. All corners of a frame are solved together (one bilinear resampling of the image
-per iteration for every window), ~2-4 ms a 720p frame.
+to the line from the corner through it), on the gradients at the pixels themselves, over a
+window of half a square, weighting out the pixels that the local image-to-board map puts inside
+a marker's span, less a margin of twice the edges' blur: only the four checker edges meeting at
+the corner pull it. The map is a quadratic fitted to the corner's detected grid neighbours: a
+homography (straight lines) put the masks of a 115 deg lens's outer corners a fraction of a pixel
+off, enough to leave the markers' blurred edges in on one side, and the guided wide-lens capture
+calibrated 10x worse; the quadratic follows the lens's curvature over a square (0.0045 px against
+the truth where OpenCV's corners gave 0.0215). All corners of a frame are solved together, ~3-6 ms
+a 720p frame.
 """
 
 from __future__ import annotations
@@ -24,14 +30,17 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-# Past 2 sigma of an edge's blur its gradient's square is under 2% of the peak: the marker's edge
-# no longer pulls. Sharp webcam edges have sigma 0.6-0.8 px (coverage/sharpness.py), so 1.5 px.
-MIN_BLUR_MARGIN_PX = 1.5
+# The mask keeps this many blur widths (gaussian sigma, as sharpness.edge_blur reads it) clear of
+# a marker's edge, where the edge's squared gradient is under 2% of its peak; and it needs as many
+# again between its own border and the checker's edge for that edge's profile. Where a square is
+# too small or too soft for both (a far or blurred board), the corner is left as OpenCV gave it.
+# Over 24 renders of tilted boards at four blurs (0.5-1.4 px), margin and band of 2 sigma each
+# gave the lowest corner error of 2-3.5 and 2-2.5 sigma; every setting beat OpenCV's corners.
 BLUR_MARGIN_SIGMAS = 2.0
 BAND_SIGMAS = 2.0
-# Window: half a square each way from the corner (the next corner is a square away), at most
-# this many pixels (a larger window adds pixels far from the corner, where a curved lens bends
-# the edges away from the local homography).
+MIN_BLUR_MARGIN_PX = 1.5  # where the blur is not known: 2 sigma of a sharp webcam edge (0.7 px)
+# Window: half a square each way from the corner (the next corner is a square away), at most this
+# many pixels: past it the pixels are far from the corner and add little but cost.
 MAX_HALF_WINDOW_PX = 14
 MIN_HALF_WINDOW_PX = 3
 # Gaussian weight over the window, sigma in squares: as cornerSubPix, the pixels near the corner count most.
@@ -42,7 +51,8 @@ _GRADIENT_SCALE = 1.0 / 8.0 if GRADIENT_KSIZE == 3 else 0.5
 # correction (the bias removed is hundredths of a pixel): the detected position is kept.
 MAX_SHIFT_PX = 0.5
 
-LOCAL_MAP = "quadratic"
+# Ridge on the local map's quadratic terms (offsets normalised to ~1 neighbour spacing): far below
+# what nine points determine, enough to hold them at zero where the neighbours lie on two lines.
 QUADRATIC_RIDGE = 1e-3
 _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.int64)  # (9, 2), (0, 0) at 4
 
@@ -50,11 +60,12 @@ _NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.
 def _general_position_table() -> np.ndarray:
     """(512,) bool by bitmask of present neighbours: whether four of them have no three on a line.
 
-    A homography needs four such points; the 3x3 neighbourhood of a corner at the board's border
-    or beside undetected corners often has four that do not (three along the border and one more),
-    from which DLT returns a map that folds the window.
+    The 3x3 neighbourhood of a corner at the board's border or beside undetected corners often
+    has four points three of which lie on a line (the border and one more); a local map fitted to
+    them folds the window (corners moved 0.4 px off on renders), so such corners are left alone.
     """
     table = np.zeros(512, bool)
+
     def on_a_line(a: int, b: int, c: int) -> bool:
         (x1, y1), (x2, y2) = _NEIGHBOURS[b] - _NEIGHBOURS[a], _NEIGHBOURS[c] - _NEIGHBOURS[a]
         return x1 * y2 - x2 * y1 == 0
@@ -74,46 +85,29 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
 
     `object_points_m`: (N, 2 or 3) the same corners on the board; `blur_sigma_px`: the frame's
     edge blur (gaussian sigma, `sharpness.EdgeBlur.blur_px`), which widens the margin left
-    around the markers. Corners without four grid neighbours detected (no local homography), or
-    whose refinement fails, keep their detected position.
+    around the markers. Corners without four grid neighbours in general position detected, in
+    squares too small for the mask at this blur, or whose refinement fails, keep their position.
     """
     corners = np.asarray(corners_px, np.float64).reshape(-1, 2)
     out = corners.copy()
     if len(corners) < 4:
         return out
     grid = np.rint(np.asarray(object_points_m, np.float64).reshape(len(corners), -1)[:, :2] / square_m).astype(np.int64)
-    if LOCAL_MAP == "quadratic":
-        coef, scale, axis_all, valid = _local_quadratic_maps(corners, grid)
-    else:
-        homographies, valid = _local_homographies(corners, grid)
+    coef, scale, axis_all, valid = _local_quadratic_maps(corners, grid)
     if not valid.any():
         return out
     index = np.flatnonzero(valid)
     start = corners[index]
-    if LOCAL_MAP == "quadratic":
-        axis_px = axis_all[index]
-        C, sc = coef[index], scale[index]
+    axis_px = axis_all[index]  # (M, 2) px per square along the board's u and v at each corner
+    c = coef[index].astype(np.float32)  # float32: a 720p frame's windows are ~40k pixels
+    inv_scale = (1.0 / scale[index, None]).astype(np.float32)
 
-        def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x = rel[..., 0] / sc[:, None].astype(np.float32)
-            y = rel[..., 1] / sc[:, None].astype(np.float32)
-            mono = (np.ones_like(x), x, y, x * x, x * y, y * y)
-            c = C.astype(np.float32)
-            u = sum(c[:, 0, k:k + 1] * mono[k] for k in range(6))
-            v = sum(c[:, 1, k:k + 1] * mono[k] for k in range(6))
-            return u, v
-    else:
-        H = homographies[index]
-        # px per square along the board's two axes at each corner (the homography's Jacobian at the origin)
-        jac = (H[:, :2, :2] - H[:, :2, 2:3] * H[:, 2:3, :2]) / H[:, 2:3, 2:3]
-        axis_px = np.linalg.norm(jac, axis=1)  # (M, 2): |d image / du|, |d image / dv|
-        Hinv = np.linalg.inv(H).astype(np.float32)
-
-        def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x, y = rel[..., 0], rel[..., 1]
-            z = Hinv[:, 2, 0:1] * x + Hinv[:, 2, 1:2] * y + Hinv[:, 2, 2:3]
-            return ((Hinv[:, 0, 0:1] * x + Hinv[:, 0, 1:2] * y + Hinv[:, 0, 2:3]) / z,
-                    (Hinv[:, 1, 0:1] * x + Hinv[:, 1, 1:2] * y + Hinv[:, 1, 2:3]) / z)
+    def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, y = rel[..., 0] * inv_scale, rel[..., 1] * inv_scale
+        terms = (x, y, x * x, x * y, y * y)
+        u = c[:, 0, 0:1] + sum(c[:, 0, k + 1:k + 2] * t for k, t in enumerate(terms))
+        v = c[:, 1, 0:1] + sum(c[:, 1, k + 1:k + 2] * t for k, t in enumerate(terms))
+        return u, v
     half = int(np.clip(np.ceil(0.5 * axis_px.max()), MIN_HALF_WINDOW_PX, MAX_HALF_WINDOW_PX))
     border_squares = (square_m - marker_m) / 2.0 / square_m
     margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
@@ -124,41 +118,6 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     keep = solved & roomy & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = refined[keep]
     return out
-
-
-def _local_homographies(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3, 3) board offset (squares from the corner) -> image offset (px from the corner), and (N,) whether fitted.
-
-    Fitted by DLT to the corner and its detected 8-neighbours (at least 4 points, not all on one
-    line); rows of missing neighbours are zero and drop out of the least squares.
-    """
-    n = len(corners)
-    lo = grid.min(axis=0) - 1
-    shape = grid.max(axis=0) - lo + 2
-    lookup = np.full((shape[0], shape[1]), -1, np.int64)
-    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(n)
-    cells = grid[:, None, :] - lo + _NEIGHBOURS[None]  # (N, 9, 2)
-    members = lookup[cells[..., 0], cells[..., 1]]  # (N, 9), -1 where not detected
-    present = members >= 0
-    uv = np.broadcast_to(_NEIGHBOURS[None].astype(np.float64), (n, 9, 2))
-    xy = np.where(present[..., None], corners[np.maximum(members, 0)] - corners[:, None, :], 0.0)
-    scale = np.maximum(np.sqrt((xy ** 2).sum(axis=2).sum(axis=1) / np.maximum(present.sum(axis=1) - 1, 1)), 1e-6)
-    xy_n = xy / scale[:, None, None]  # image offsets normalised to ~1 for a well-conditioned DLT
-    u, v = uv[..., 0], uv[..., 1]
-    x, y = xy_n[..., 0], xy_n[..., 1]
-    zero, one = np.zeros_like(u), np.ones_like(u)
-    rows_x = np.stack([u, v, one, zero, zero, zero, -x * u, -x * v, -x], axis=2)
-    rows_y = np.stack([zero, zero, zero, u, v, one, -y * u, -y * v, -y], axis=2)
-    A = np.concatenate([rows_x, rows_y], axis=1) * np.concatenate([present, present], axis=1)[..., None]
-    # the null vector: AtA's eigenvector of the smallest eigenvalue (cheaper than the SVD of A)
-    eigenvalues, eigenvectors = np.linalg.eigh(A.transpose(0, 2, 1) @ A)
-    H = eigenvectors[:, :, 0].reshape(n, 3, 3).copy()
-    H[:, :2, :] *= scale[:, None, None]
-    H /= np.where(np.abs(H[:, 2:3, 2:3]) > 1e-12, H[:, 2:3, 2:3], 1.0)
-    # four points in general position, and a solution well separated from the next
-    pattern = (present * (1 << np.arange(9))).sum(axis=1)
-    valid = _GENERAL_POSITION[pattern] & (eigenvalues[:, 1] > 1e-12) & np.isfinite(H).all(axis=(1, 2))
-    return H, valid
 
 
 def _local_quadratic_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

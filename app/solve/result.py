@@ -24,8 +24,8 @@ class View:
     information_weight: float = 1.0
     timestamp_ns: int | None = None  # the frame's capture time (source clock); None where unknown
     # (N, 2) float64 the same corners refined on the checker's edges alone, markers masked out
-    # (coverage/corner_refine.py); None where not computed. The final solve of a perspective lens
-    # takes these (`as_refined`), the capture's incremental solves OpenCV's.
+    # (coverage/corner_refine.py); None where not computed. The final solve takes these
+    # (`as_refined`, unless --corners opencv), the capture's incremental solves OpenCV's.
     refined_px: np.ndarray | None = None
 
     def as_refined(self) -> View:
