@@ -181,21 +181,27 @@ def _solve_on_pixels(grey: np.ndarray, start: np.ndarray, half: int,
     error by under 0.0002 px on 24 renders of tilted boards.
     """
     height, width = grey.shape[:2]
+    size = 2 * half + 1
     ys, xs = np.mgrid[-half:half + 1, -half:half + 1]
-    offsets = np.stack([xs.ravel(), ys.ravel()], axis=1)  # (P, 2) int
+    offsets = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float32)  # (P, 2), row by row
     centre = np.rint(start).astype(np.int64)
-    pixels = centre[:, None, :] + offsets[None]  # (M, P, 2) int
-    on_image = (pixels[..., 0] >= 1) & (pixels[..., 0] <= width - 2) & (pixels[..., 1] >= 1) & (pixels[..., 1] <= height - 2)
-    x0, y0 = max(int(pixels[..., 0].min()) - 1, 0), max(int(pixels[..., 1].min()) - 1, 0)
-    x1, y1 = min(int(pixels[..., 0].max()) + 2, width), min(int(pixels[..., 1].max()) + 2, height)
+    x0, y0 = max(int(centre[:, 0].min()) - half - 1, 0), max(int(centre[:, 1].min()) - half - 1, 0)
+    x1, y1 = min(int(centre[:, 0].max()) + half + 2, width), min(int(centre[:, 1].max()) + half + 2, height)
     crop = grey[y0:y1, x0:x1].astype(np.float32)
-    grad_x = cv2.Sobel(crop, cv2.CV_32F, 1, 0, ksize=GRADIENT_KSIZE, scale=_GRADIENT_SCALE)
-    grad_y = cv2.Sobel(crop, cv2.CV_32F, 0, 1, ksize=GRADIENT_KSIZE, scale=_GRADIENT_SCALE)
-    cols = np.clip(pixels[..., 0] - x0, 0, crop.shape[1] - 1)
-    rows = np.clip(pixels[..., 1] - y0, 0, crop.shape[0] - 1)
-    gx = grad_x[rows, cols] * on_image
-    gy = grad_y[rows, cols] * on_image
-    rel = (pixels - start[:, None, :]).astype(np.float32)  # each pixel's position from OpenCV's corner
+    # each window's gradients cut straight out of the crop's (zero-padded, so windows may hang off
+    # the image; the image's outermost rows and columns, whose differences run off it, weigh nothing)
+    gradients = []
+    for dx, dy in ((1, 0), (0, 1)):
+        grad = cv2.Sobel(crop, cv2.CV_32F, dx, dy, ksize=GRADIENT_KSIZE, scale=_GRADIENT_SCALE)
+        for edge, at in ((y0 == 0, (0, slice(None))), (y1 == height, (-1, slice(None))),
+                         (x0 == 0, (slice(None), 0)), (x1 == width, (slice(None), -1))):
+            if edge:
+                grad[at] = 0.0
+        padded = cv2.copyMakeBorder(grad, half, half, half, half, cv2.BORDER_CONSTANT, value=0.0)
+        windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size))
+        gradients.append(windows[centre[:, 1] - y0, centre[:, 0] - x0].reshape(len(start), -1))
+    gx, gy = gradients
+    rel = (centre - start).astype(np.float32)[:, None, :] + offsets[None]  # each pixel's position from OpenCV's corner
     w = weights(rel)
     wgx, wgy = w * gx, w * gy
     gxx, gxy, gyy = wgx * gx, wgx * gy, wgy * gy
