@@ -55,7 +55,7 @@ from calibcoach.coverage.select import (
     FrameSelector,
     board_speed_px_s,
 )
-from calibcoach.coverage.sharpness import edge_blur
+from calibcoach.coverage.sharpness import EdgeBlur, edge_blur
 from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
@@ -153,7 +153,7 @@ class CalibrationSession(SessionFinish):
         for frame, detection in repeats:
             self.frames_seen += 1
             if usable and detection.corner_count >= self.settings.selector.min_corners and not self._drifted(frame.index):
-                self._reserve.append((frame_view(frame, detection, self.board), 1.0))
+                self._reserve.append((self._view(frame, detection), 1.0))
 
     def sharp_enough(self, frame: Frame, detection: Detection, *, motion_px_s: float | None) -> bool:
         """Whether a tracked frame's own image passes the selector's smear and blur tests (`FrameSelector.unsharp`).
@@ -210,15 +210,19 @@ class CalibrationSession(SessionFinish):
             decision, contribution = gated, None
         self.selector.record(decision)
         if not decision.accepted and decision.quality >= 1.0:
-            self._reserve.append((frame_view(frame, detection, self.board, edges=edges), decision.quality))  # usable later: see _fill_budget
+            self._reserve.append((self._view(frame, detection, edges), decision.quality))  # usable later: see _fill_budget
         if decision.accepted and contribution is not None:
             self.selector.commit(frame.index, detection, pose, contribution, blur_px=blur)
-            self.views.append(frame_view(frame, detection, self.board, edges=edges))
+            self.views.append(self._view(frame, detection, edges))
             if self._check_image is None or detection.corner_count > self._check_image[0]:
                 self._check_image = (detection.corner_count, frame.image)
             self._update_after_accept()
         self.guide.observe(frame.timestamp_ns, pose, accepted=len(self.views))
         return self._outcome(frame, detection, pose, decision, blur, motion)
+
+    def _view(self, frame: Frame, detection: Detection, edges: EdgeBlur | None = None) -> View:
+        """The frame as the solver takes it, refined on the checker's edges unless --corners opencv."""
+        return frame_view(frame, detection, self.board, refine=self.settings.corners == "masked", edges=edges)
 
     def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
         """Corner speed around this frame, px/s: the larger of the backward and forward differences."""

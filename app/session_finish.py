@@ -55,13 +55,17 @@ def view_detection(view: View) -> Detection:
                      np.zeros(0, np.int32))
 
 
-def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, edges: EdgeBlur | None = None) -> View:
-    """A detected frame as the solver takes it, with its corners also refined on the checker's edges.
+def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: bool = True,
+               edges: EdgeBlur | None = None) -> View:
+    """A detected frame as the solver takes it, with its corners also refined on the checker's edges (`refine`).
 
     `edges`: the frame's edge widths where already measured; the refinement's mask keeps clear of
     the markers' edges by twice the blurrier family's width.
     """
     corners = detection.corners_px.astype(np.float64)
+    if not refine:
+        return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
+                    timestamp_ns=int(frame.timestamp_ns))
     grey = frame.grey()
     blur = (edges or edge_blur(grey, corners, detection.object_points_m)).blur_px
     refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,

@@ -62,7 +62,8 @@ def compare(label: str, truth_folder: Path, capture: Path) -> str:
     every, _seconds = detect_all(capture)
     covered = [d.corners_px for d in every.values() if d.corner_count >= 6]  # bench/heldout.py's yardstick
     # the final views' frames and corners (the robust solve's outliers left out) as OpenCV detected them
-    session, _stats = run_replay(open_source(capture), spec, SessionSettings(corners="opencv"))
+    photos = open_source(capture).info.kind == "folder"  # as `calibcoach calibrate` sets it (app/commands.py)
+    session, _stats = run_replay(open_source(capture), spec, SessionSettings(use_motion_gate=not photos, corners="opencv"))
     views = session.finish().calibration.views
     wanted = {v.frame_index for v in views}
     grey = {f.index: f.grey() for f in open_source(capture) if f.index in wanted}

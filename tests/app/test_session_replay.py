@@ -148,3 +148,22 @@ def test_the_working_model_check_solves_a_fisheye_only_where_the_pinhole_does_no
     if working_model == "pinhole":
         assert all(rms < 1.0 and fov < 80.0 for rms, fov in pinholes)
         assert not any(model == "fisheye" for model, _, _ in reduced_solves)
+
+
+def test_corners_flag_chooses_the_final_solves_corners(recordings_dir: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    # --corners opencv: the final solve takes detectBoard's corners; the default refines the same
+    # frames' corners on the checker's edges (hundredths of a pixel: under 0.5 px everywhere) and,
+    # on this recording's sharp frames, fits them better.
+    recording = recordings_dir / "demo_webcam720_careful"
+    code_masked, _, masked = calibrate(tmp_path / "m", capsys, recording)
+    code_opencv, _, opencv = calibrate(tmp_path / "o", capsys, recording, "--corners", "opencv")
+    assert code_masked == code_opencv == 0
+    by_frame = {v.frame_index: v for v in read_detections(opencv / "detections.npz")}
+    moved = []
+    for view in read_detections(masked / "detections.npz"):
+        if view.frame_index in by_frame and np.array_equal(view.ids, by_frame[view.frame_index].ids):
+            moved.append(np.abs(view.image_points_px - by_frame[view.frame_index].image_points_px).max())
+    assert len(moved) >= 10 and max(moved) < 0.5 and np.median(moved) > 0.001, moved
+    rms = [json.loads((out / "calibration.json").read_text())["rms_px"] for out in (masked, opencv)]
+    assert rms[0] < rms[1], rms
