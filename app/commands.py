@@ -100,7 +100,7 @@ def session_settings(args: argparse.Namespace, info: SourceInfo, *, live: bool) 
         selector=SelectorSettings(max_frames=args.max_frames, keep_all_usable=photos_within_budget(args, info, live=live)),
         stop_when_done=not args.no_stop,
         use_motion_gate=not photos,
-        corners=getattr(args, "corners", "masked"),
+        corners=args.corners,
     )
 
 

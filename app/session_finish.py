@@ -63,13 +63,12 @@ def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: 
     the markers' edges by twice the blurrier family's width.
     """
     corners = detection.corners_px.astype(np.float64)
-    if not refine:
-        return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
-                    timestamp_ns=int(frame.timestamp_ns))
-    grey = frame.grey()
-    blur = (edges or edge_blur(grey, corners, detection.object_points_m)).blur_px
-    refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
-                                      board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
+    refined = None
+    if refine:
+        grey = frame.grey()
+        blur = (edges or edge_blur(grey, corners, detection.object_points_m)).blur_px
+        refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
+                                          board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
                 timestamp_ns=int(frame.timestamp_ns), refined_px=refined)
 

@@ -96,9 +96,21 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     coef, scale, axis_all, valid = _local_quadratic_maps(corners, grid)
     if not valid.any():
         return out
-    index = np.flatnonzero(valid)
+    fitted = axis_all[valid]  # (px per square along the board's u and v) of every corner with a map
+    # one window size for the frame, from every corner with a map (what decides a corner's window
+    # must not depend on which others are solved)
+    half = int(np.clip(np.ceil(0.5 * fitted.max()), MIN_HALF_WINDOW_PX, MAX_HALF_WINDOW_PX))
+    border_squares = (square_m - marker_m) / 2.0 / square_m
+    margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
+    # the checker edge's own profile needs room between the mask and the edge (+-BAND_SIGMAS sigma):
+    # corners without it are left as detected, and not solved
+    band_px = border_squares * axis_all.min(axis=1) - margin_px
+    roomy = valid & (band_px >= BAND_SIGMAS * max(blur_sigma_px or 0.0, MIN_BLUR_MARGIN_PX / BLUR_MARGIN_SIGMAS))
+    if not roomy.any():
+        return out
+    index = np.flatnonzero(roomy)
     start = corners[index]
-    axis_px = axis_all[index]  # (M, 2) px per square along the board's u and v at each corner
+    axis_px = axis_all[index]
     c = coef[index].astype(np.float32)  # float32: a 720p frame's windows are ~40k pixels
     inv_scale = (1.0 / scale[index, None]).astype(np.float32)
 
@@ -108,14 +120,9 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
         u = c[:, 0, 0:1] + sum(c[:, 0, k + 1:k + 2] * t for k, t in enumerate(terms))
         v = c[:, 1, 0:1] + sum(c[:, 1, k + 1:k + 2] * t for k, t in enumerate(terms))
         return u, v
-    half = int(np.clip(np.ceil(0.5 * axis_px.max()), MIN_HALF_WINDOW_PX, MAX_HALF_WINDOW_PX))
-    border_squares = (square_m - marker_m) / 2.0 / square_m
-    margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
-    # the checker edge's own profile needs room between the mask and the edge (+-BAND_SIGMAS sigma)
-    band_px = border_squares * axis_px.min(axis=1) - margin_px
-    roomy = band_px >= BAND_SIGMAS * max(blur_sigma_px or 0.0, MIN_BLUR_MARGIN_PX / BLUR_MARGIN_SIGMAS)
+
     refined, solved = _solve_on_pixels(grey, start, half, lambda rel: _window_weights(to_board, rel, axis_px, border_squares, margin_px))
-    keep = solved & roomy & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
+    keep = solved & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = refined[keep]
     return out
 
