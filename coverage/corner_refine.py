@@ -25,10 +25,15 @@ frame are solved together, ~3-6 ms a 720p frame.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+try:  # built by `pip install` where a C compiler is present (pyproject ext-modules, optional)
+    from calibcoach.coverage._checker_edges import moments as _moments_in_c
+except ImportError:  # pragma: no cover - no compiler at install: the NumPy path, the same numbers
+    _moments_in_c = None
 
 # The mask keeps this many blur widths (gaussian sigma, as sharpness.edge_blur reads it) clear of
 # a marker's edge, where the edge's squared gradient is under 2% of its peak; and it needs as many
@@ -45,8 +50,9 @@ MAX_HALF_WINDOW_PX = 14
 MIN_HALF_WINDOW_PX = 3
 # Gaussian weight over the window, sigma in squares: as cornerSubPix, the pixels near the corner count most.
 WEIGHT_SIGMA_SQUARES = 0.3
-GRADIENT_KSIZE = 3  # Sobel: central differences, smoothed across over 3 pixels
-_GRADIENT_SCALE = 1.0 / 8.0 if GRADIENT_KSIZE == 3 else 0.5
+_WEIGHT_EXPONENT = np.float32(-0.5 / WEIGHT_SIGMA_SQUARES ** 2)
+GRADIENT_KSIZE = 3  # Sobel: central differences, smoothed across over 3 pixels (the C pass has this kernel built in)
+_GRADIENT_SCALE = 1.0 / 8.0
 # A refined corner more than this far from OpenCV's is a failure of the mask or the fit, not a
 # correction (the bias removed is hundredths of a pixel): the detected position is kept.
 MAX_SHIFT_PX = 0.5
@@ -110,18 +116,13 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
         return out
     index = np.flatnonzero(roomy)
     start = corners[index]
-    axis_px = axis_all[index]
-    c = coef[index].astype(np.float32)  # float32: a 720p frame's windows are ~40k pixels
-    inv_scale = (1.0 / scale[index, None]).astype(np.float32)
-
-    def to_board(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x, y = rel[..., 0] * inv_scale, rel[..., 1] * inv_scale
-        terms = (x, y, x * x, x * y, y * y)
-        u = c[:, 0, 0:1] + sum(c[:, 0, k + 1:k + 2] * t for k, t in enumerate(terms))
-        v = c[:, 1, 0:1] + sum(c[:, 1, k + 1:k + 2] * t for k, t in enumerate(terms))
-        return u, v
-
-    refined, solved = _solve_on_pixels(grey, start, half, lambda rel: _window_weights(to_board, rel, axis_px, border_squares, margin_px))
+    window = _Windows(
+        coef=np.ascontiguousarray(coef[index], np.float32),  # float32: a 720p frame's windows are ~40k pixels
+        inv_scale=(1.0 / scale[index]).astype(np.float32),
+        # a marker's span starts `border_squares` from the corner along each axis; its edge's blur reaches margin_px further in
+        marker_edges=np.ascontiguousarray(border_squares - margin_px / axis_all[index]),
+    )
+    refined, solved = _solve_on_pixels(grey, start, half, window)
     keep = solved & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = refined[keep]
     return out
@@ -161,21 +162,29 @@ def _local_quadratic_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.nda
     return coef, scale, axis_px, valid
 
 
-def _window_weights(to_board: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], rel: np.ndarray, axis_px: np.ndarray,
-                    border_squares: float, margin_px: float) -> np.ndarray:
-    """(M, P) weight of window pixels at `rel` (M, P, 2) px from each corner: gaussian in board units,
-    zero in a marker's span or beyond half a square."""
-    u, v = to_board(rel)
-    # A marker's span starts `border_squares` from the corner along each axis; its edge's blur reaches margin_px further in.
-    edge_u = (border_squares - margin_px / axis_px[:, 0])[:, None]
-    edge_v = (border_squares - margin_px / axis_px[:, 1])[:, None]
-    in_marker = (np.abs(u) > edge_u) & (np.abs(v) > edge_v)
-    inside = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
-    return np.exp((u * u + v * v) * np.float32(-0.5 / WEIGHT_SIGMA_SQUARES ** 2)) * (inside & ~in_marker)
+@dataclass(frozen=True, slots=True)
+class _Windows:
+    """What weighs each corner's window pixels: the local map, and where the markers' spans begin."""
+
+    coef: np.ndarray  # (M, 2, 6) float32: board offset (u, v) in squares, quadratic in the pixel offset times inv_scale
+    inv_scale: np.ndarray  # (M,) float32
+    marker_edges: np.ndarray  # (M, 2) float64: |u| and |v| both beyond these is inside a marker's span
+
+    def weights(self, rel: np.ndarray) -> np.ndarray:
+        """(M, P) weight of the pixels at `rel` (M, P, 2) px from each corner: gaussian in board units,
+        zero in a marker's span or beyond half a square."""
+        x, y = rel[..., 0] * self.inv_scale[:, None], rel[..., 1] * self.inv_scale[:, None]
+        terms = (x, y, x * x, x * y, y * y)
+        c = self.coef
+        u = c[:, 0, 0:1] + sum(c[:, 0, k + 1:k + 2] * t for k, t in enumerate(terms))
+        v = c[:, 1, 0:1] + sum(c[:, 1, k + 1:k + 2] * t for k, t in enumerate(terms))
+        in_marker = (np.abs(u) > self.marker_edges[:, 0:1]) & (np.abs(v) > self.marker_edges[:, 1:2])
+        inside = (np.abs(u) <= 0.5) & (np.abs(v) <= 0.5)
+        return np.exp((u * u + v * v) * _WEIGHT_EXPONENT) * (inside & ~in_marker)
 
 
-def _solve_on_pixels(grey: np.ndarray, start: np.ndarray, half: int,
-                     weights: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _solve_on_pixels(grey: np.ndarray, start: np.ndarray, half: int, window: _Windows,
+                     *, use_c: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """cornerSubPix's equations solved once for all windows: q = (sum w g g^T)^-1 sum w g g^T p.
 
     Unlike cornerSubPix, which resamples its window bilinearly around each new estimate and
@@ -186,12 +195,34 @@ def _solve_on_pixels(grey: np.ndarray, start: np.ndarray, half: int,
     0.023 px rms). The weights are smooth in the window but for the mask, whose edge a tenth of a
     pixel does not move: re-centring them on the solution and solving again changed the corners'
     error by under 0.0002 px on 24 renders of tilted boards.
+
+    The sums come from the C pass (`_checker_edges.moments`) where it was built, else from NumPy
+    (`use_c=False` forces that; both give the same corners to ~1e-9 px).
     """
+    centre = np.rint(start).astype(np.int64)
+    if use_c and _moments_in_c is not None and grey.dtype == np.uint8 and grey.ndim == 2:
+        image = np.ascontiguousarray(grey)
+        sums = np.empty((len(start), 5), np.float64)
+        _moments_in_c(image, image.shape[0], image.shape[1], half, np.ascontiguousarray(centre),
+                      np.ascontiguousarray(centre - start, np.float32), window.coef, window.inv_scale,
+                      window.marker_edges, float(_WEIGHT_EXPONENT), sums)
+        a, b, c, r1, r2 = sums.T
+    else:
+        a, b, c, r1, r2 = _moments_in_numpy(grey, start, centre, half, window)
+    det = a * c - b * b
+    solved = det > 1e-9 * np.maximum(a + c, 1e-12) ** 2
+    safe = np.where(solved, det, 1.0)
+    q = start + np.stack([(c * r1 - b * r2) / safe, (a * r2 - b * r1) / safe], axis=1) * solved[:, None]
+    return q, solved
+
+
+def _moments_in_numpy(grey: np.ndarray, start: np.ndarray, centre: np.ndarray, half: int,
+                      window: _Windows) -> tuple[np.ndarray, ...]:
+    """(a, b, c, r1, r2), each (M,) float64: sum w gx^2, w gx gy, w gy^2 and the right-hand sides, per window."""
     height, width = grey.shape[:2]
     size = 2 * half + 1
     ys, xs = np.mgrid[-half:half + 1, -half:half + 1]
     offsets = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float32)  # (P, 2), row by row
-    centre = np.rint(start).astype(np.int64)
     x0, y0 = max(int(centre[:, 0].min()) - half - 1, 0), max(int(centre[:, 1].min()) - half - 1, 0)
     x1, y1 = min(int(centre[:, 0].max()) + half + 2, width), min(int(centre[:, 1].max()) + half + 2, height)
     crop = grey[y0:y1, x0:x1].astype(np.float32)
@@ -209,15 +240,10 @@ def _solve_on_pixels(grey: np.ndarray, start: np.ndarray, half: int,
         gradients.append(windows[centre[:, 1] - y0, centre[:, 0] - x0].reshape(len(start), -1))
     gx, gy = gradients
     rel = (centre - start).astype(np.float32)[:, None, :] + offsets[None]  # each pixel's position from OpenCV's corner
-    w = weights(rel)
+    w = window.weights(rel)
     wgx, wgy = w * gx, w * gy
     gxx, gxy, gyy = wgx * gx, wgx * gy, wgy * gy
     # float64 sums: ~800 terms a window
-    a, b, c = (gxx.sum(axis=1, dtype=np.float64), gxy.sum(axis=1, dtype=np.float64), gyy.sum(axis=1, dtype=np.float64))
-    r1 = (gxx * rel[..., 0] + gxy * rel[..., 1]).sum(axis=1, dtype=np.float64)
-    r2 = (gxy * rel[..., 0] + gyy * rel[..., 1]).sum(axis=1, dtype=np.float64)
-    det = a * c - b * b
-    solved = det > 1e-9 * np.maximum(a + c, 1e-12) ** 2
-    safe = np.where(solved, det, 1.0)
-    q = start + np.stack([(c * r1 - b * r2) / safe, (a * r2 - b * r1) / safe], axis=1) * solved[:, None]
-    return q, solved
+    return (gxx.sum(axis=1, dtype=np.float64), gxy.sum(axis=1, dtype=np.float64), gyy.sum(axis=1, dtype=np.float64),
+            (gxx * rel[..., 0] + gxy * rel[..., 1]).sum(axis=1, dtype=np.float64),
+            (gxy * rel[..., 0] + gyy * rel[..., 1]).sum(axis=1, dtype=np.float64))

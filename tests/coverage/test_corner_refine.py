@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calibcoach.coverage import corner_refine
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.corner_refine import MAX_SHIFT_PX, refine_on_checker_edges
 from calibcoach.coverage.detector import CharucoBoardDetector
@@ -88,3 +89,32 @@ def test_corners_without_a_local_homography_keep_their_position() -> None:
     thrown[10] += (2.0, 0.0)
     out = refine_on_checker_edges(image, thrown, detection.object_points_m, SQUARE_M, MARKER_M)
     np.testing.assert_array_equal(out[10], thrown[10])
+
+
+
+def test_the_c_window_sums_give_numpys_corners(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The C pass (coverage/_checker_edges.c) and the NumPy one must agree to the float32 rounding of
+    # their weights, on a board inside the image and cut so that windows hang off the image's left
+    # and bottom edges (whose outermost rows and columns have no gradient in either).
+    assert corner_refine._moments_in_c is not None, "the C extension coverage/_checker_edges.c was not built (pip install -e .)"
+    rvec, tvec = _board_at(40.0, 0.45)
+    image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.7, noise_sigma_dn=1.5, seed=3)
+    detection = CharucoBoardDetector(SPEC).detect(image)
+    assert detection.corner_count >= 20
+    corners = detection.corners_px.astype(np.float64)
+    left = int(np.sort(corners[:, 0])[3]) - 4  # a few corners 4 px or less from the cut, some left of it
+    bottom = int(np.sort(corners[:, 1])[-4]) + 3
+    cuts = [(image, corners, None), (image[:, left:], corners - (left, 0), 0.9), (image[:bottom], corners, 0.6)]
+    for cut, given, blur_px in cuts:
+        inside = (given >= 0).all(axis=1) & (given < cut.shape[::-1]).all(axis=1)
+        args = (cut, given[inside], detection.object_points_m[inside], SQUARE_M, MARKER_M)
+        with_c = refine_on_checker_edges(*args, blur_sigma_px=blur_px)
+        monkeypatch.setattr(corner_refine, "_moments_in_c", None)
+        with_numpy = refine_on_checker_edges(*args, blur_sigma_px=blur_px)
+        monkeypatch.undo()
+        moved = np.any(with_numpy != given[inside], axis=1)
+        assert np.count_nonzero(moved) >= 0.5 * inside.sum()
+        if cut is not image:  # windows over the cut were solved
+            to_edge = np.minimum(given[inside], np.array(cut.shape[::-1]) - 1 - given[inside]).min(axis=1)
+            assert np.any(moved & (to_edge < 5)), to_edge[moved].min()
+        np.testing.assert_allclose(with_c, with_numpy, rtol=0, atol=1e-6)
