@@ -70,16 +70,16 @@ def _general_position_table() -> np.ndarray:
     has four points three of which lie on a line (the border and one more); a local map fitted to
     them folds the window (corners moved 0.4 px off on renders), so such corners are left alone.
     """
-    table = np.zeros(512, bool)
+    at = _NEIGHBOURS.tolist()
 
     def on_a_line(a: int, b: int, c: int) -> bool:
-        (x1, y1), (x2, y2) = _NEIGHBOURS[b] - _NEIGHBOURS[a], _NEIGHBOURS[c] - _NEIGHBOURS[a]
-        return x1 * y2 - x2 * y1 == 0
+        (xa, ya), (xb, yb), (xc, yc) = at[a], at[b], at[c]
+        return (xb - xa) * (yc - ya) - (xc - xa) * (yb - ya) == 0
 
     quads = [q for q in itertools.combinations(range(9), 4) if not any(on_a_line(*t) for t in itertools.combinations(q, 3))]
-    for mask in range(512):
-        table[mask] = any(all(mask >> i & 1 for i in q) for q in quads)
-    return table
+    quad_masks = np.array([sum(1 << i for i in q) for q in quads])
+    masks = np.arange(512)[:, None]
+    return ((masks & quad_masks[None]) == quad_masks[None]).any(axis=1)  # (a loop over the 512 took 45 ms at import)
 
 
 _GENERAL_POSITION = _general_position_table()
