@@ -19,7 +19,8 @@ homography (straight lines) put the masks of a 115 deg lens's outer corners a fr
 off, enough to leave the markers' blurred edges in on one side, and the guided wide-lens capture
 calibrated 10x worse than with OpenCV's corners; the quadratic follows the lens's curvature over
 a square (that capture: 0.005 px against the truth, OpenCV's corners 0.022). All corners of a
-frame are solved together, ~3-6 ms a 720p frame.
+frame are solved together: ~0.9 ms a 720p frame with the window sums in C (coverage/_checker_edges.c),
+~2.8 ms in NumPy (216 frames of four renders).
 """
 
 from __future__ import annotations
