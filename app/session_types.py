@@ -65,7 +65,8 @@ class SessionSettings:
     solve_frames: int = 400
     # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
     # the markers masked out: coverage/corner_refine.py) or "opencv" (as detectBoard returned them).
-    # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so).
+    # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so),
+    # and so does a fisheye's final solve (`refines_corners`).
     corners: str = "masked"
 
 

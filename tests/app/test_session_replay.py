@@ -16,6 +16,7 @@ from calibcoach.app.session import SessionSettings
 from calibcoach.app.solve.compare import projection_difference
 from calibcoach.app.solve.uncertainty import covered_region_mask
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector
 from calibcoach.coverage.grid import CoverageRequirements
 from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.lens import CameraModel
@@ -85,6 +86,18 @@ def test_fisheye_capture_solves_kannala_brandt(recordings_dir: Path, tmp_path: P
     assert np.load(out / name).shape == (4, 1)
     rms, covered_p95, _ = truth_error(recording, out / "calibration.json")
     assert rms < 0.1 and covered_p95 < 0.2, (rms, covered_p95)  # the bar is 1 px; the plain recipe crashes
+    # A fisheye's final solve takes OpenCV's corners as detected, not the masked refinement
+    # (SessionFinish.refines_corners): every view's corners are a fresh detection's, bit for bit.
+    views = {v.frame_index: v for v in read_detections(out / "detections.npz")}
+    detector = CharucoBoardDetector(BoardSpec(**json.loads((recording / "session.json").read_text())["board"]))
+    compared = 0
+    for frame in open_source(recording):
+        if frame.index in views and compared < 12:
+            detected = detector.detect(frame.grey())
+            if np.array_equal(detected.ids, views[frame.index].ids):
+                np.testing.assert_array_equal(detected.corners_px, views[frame.index].image_points_px.astype(np.float32))
+                compared += 1
+    assert compared >= 10
 
 
 def test_forced_models_and_the_fisheye_on_a_pinhole_lens(recordings_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
