@@ -222,7 +222,7 @@ class CalibrationSession(SessionFinish):
 
     def _view(self, frame: Frame, detection: Detection, edges: EdgeBlur | None = None) -> View:
         """The frame as the solver takes it, refined on the checker's edges unless --corners opencv."""
-        return frame_view(frame, detection, self.board, refine=self.refines_corners, edges=edges)
+        return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges)
 
     def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
         """Corner speed around this frame, px/s: the larger of the backward and forward differences."""

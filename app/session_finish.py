@@ -40,6 +40,10 @@ from calibcoach.drivers.lens import CameraModel
 
 # Fewer kept frames than this and the live session has not solved yet (app/session.py solves from here on).
 MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
+# The final solve takes the masked corners below this horizontal field of view (`refines_corners`):
+# the method's boundary between ordinary lenses (5-term Brown-Conrady) and wide ones, whose
+# checker edges curve over the half square the refinement spans.
+ORDINARY_LENS_FOV_DEG = 90.0
 
 if TYPE_CHECKING:
     from calibcoach.app.session_types import SessionSettings
@@ -103,19 +107,26 @@ class SessionFinish:
 
     @property
     def refines_corners(self) -> bool:
-        """Whether the final solve takes the masked corners (`SessionSettings.corners`): not through a fisheye.
+        """Whether the final solve takes the masked corners (`SessionSettings.corners`): on an ordinary lens only.
 
-        The refinement solves cornerSubPix's equations over half a square, where a 150 deg lens's
-        checker edges are curved: on its outer squares the curvature pulled the corners outward by
-        0.019 px on average at 450-600 px from the centre (OpenCV's 0.008), a radial pattern the
-        distortion model takes up. On the 5 fisheye renders of bench/heldout.py the masked corners
-        calibrated worse on 4: s101/s103/s104 0.023/0.015/0.006 -> 0.031/0.045/0.047 px (paired, the
-        same code; s104 above the plain recipe's 0.027), s105 0.019 -> 0.022; s102 better, 0.017 ->
-        0.006; the three fisheye recordings of guided captures better too (0.021/0.027/0.026 ->
-        0.009/0.006/0.011), but the bar is never to do worse than the plain recipe. Solving the same equations in the board's plane through the
-        local map removed the radial pull but coupled each corner to its neighbours' detections (the
-        map's curvature is fitted to them): worse on every lens. So a fisheye keeps OpenCV's corners.
+        The refinement solves cornerSubPix's equations over half a square, assuming the checker's
+        edges straight through the corner; through a wide or fisheye lens they curve over that
+        span, and the curvature pulls outer corners outward: on a 150 deg lens by 0.019 px on
+        average at 450-600 px from the centre (OpenCV's corners 0.008), on a 104 deg one by 0.017 px
+        beyond 750 px (0.006), a radial pattern the distortion model takes up. Paired on the same
+        code (bench/heldout.py renders): fisheye s101/s103/s104 0.023/0.015/0.006 -> 0.031/0.045/0.047
+        px (s104 above the plain recipe's 0.027), s102 better; the 104 deg lens s103 0.014 -> 0.064,
+        s101 better (0.053 -> 0.026). Solving the same equations in the board's plane through the
+        local map removed the radial pull but coupled each corner to its neighbours' detections
+        (the map's curvature is fitted to them) and was worse on every lens. So the masked corners
+        are taken where the method's 5-term model suffices, a field of view under 90 deg (where they
+        helped most: careful 720p renders 0.063/0.078 -> 0.033/0.022 px), and not through a fisheye.
         """
+        return self._refines_views and self.camera.field_of_view_deg()[0] < ORDINARY_LENS_FOV_DEG
+
+    @property
+    def _refines_views(self) -> bool:
+        """Whether views are refined as they are made (cheap; the final solve may still not take them)."""
         return self.settings.corners == "masked" and self.working_model != "fisheye"
 
     def _drifted(self, frame_index: int) -> bool:

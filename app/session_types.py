@@ -66,7 +66,7 @@ class SessionSettings:
     # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
     # the markers masked out: coverage/corner_refine.py) or "opencv" (as detectBoard returned them).
     # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so),
-    # and so does a fisheye's final solve (`refines_corners`).
+    # and so does the final solve through a lens of 90 deg or more, or a fisheye (`refines_corners`).
     corners: str = "masked"
 
 

@@ -12,7 +12,7 @@ import pytest
 from calibcoach.app.cli import main
 from calibcoach.app.outputs.report import read_detections
 from calibcoach.app.replay import run_replay
-from calibcoach.app.session import SessionSettings
+from calibcoach.app.session import CalibrationSession, SessionSettings
 from calibcoach.app.solve.compare import projection_difference
 from calibcoach.app.solve.uncertainty import covered_region_mask
 from calibcoach.coverage.board import BoardSpec
@@ -22,6 +22,7 @@ from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.recording import read_truth
 from calibcoach.drivers.replay import open_source
+from calibcoach.drivers.sim import LENSES
 
 
 def truth_error(recording: Path, calibration: Path) -> tuple[float, float, float]:
@@ -180,3 +181,16 @@ def test_corners_flag_chooses_the_final_solves_corners(recordings_dir: Path, tmp
     assert len(moved) >= 10 and max(moved) < 0.5 and np.median(moved) > 0.001, moved
     rms = [json.loads((out / "calibration.json").read_text())["rms_px"] for out in (masked, opencv)]
     assert rms[0] < rms[1], rms
+
+
+@pytest.mark.parametrize(("lens", "working_model", "corners", "refines"),
+                         [("webcam720", "pinhole", "masked", True), ("webcam720", "pinhole", "opencv", False),
+                          ("wide720", "rational", "masked", False), ("wide720", "fisheye", "masked", False),
+                          ("fisheye150", "fisheye", "masked", False)])
+def test_the_final_solve_refines_corners_on_ordinary_lenses_only(lens: str, working_model: str, corners: str,
+                                                                  refines: bool) -> None:
+    # The masked refinement assumes straight checker edges over half a square: taken under 90 deg
+    # (the 70 deg webcam), not through the 115 deg wide lens nor a fisheye (SessionFinish.refines_corners).
+    session = CalibrationSession(BoardSpec(), LENSES[lens].image_size, SessionSettings(corners=corners))
+    session.camera, session.working_model = LENSES[lens], working_model
+    assert session.refines_corners is refines
