@@ -9,6 +9,8 @@ to one exposure or one path.
 
 from __future__ import annotations
 
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,7 +90,12 @@ def render(name: str, seed: int) -> Path:
     folder = CACHE / f"{name}_s{seed}"
     if (folder / "truth.json").exists():
         return folder
-    folder.mkdir(parents=True, exist_ok=True)
+    # Rendered into a folder of this process's own and renamed into place when whole: two benches
+    # asking for the same render at once each render it but never write into one file (two did, and
+    # the capture was lost), and a render cut short leaves nothing that looks cached.
+    work = CACHE / f".{name}_s{seed}.{os.getpid()}.partial"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
     camera, spec = BENCH_LENSES[cell.lens], BoardSpec()
     rng = np.random.default_rng([seed, 2026])
     exposure_s = float(rng.uniform(*EXPOSURE_RANGE_S))
@@ -99,20 +106,24 @@ def render(name: str, seed: int) -> Path:
     start = time.perf_counter()
     writer = None
     if cell.container == "png":
-        (folder / "frames").mkdir(exist_ok=True)
+        (work / "frames").mkdir(exist_ok=True)
     else:
-        writer = cv2.VideoWriter(str(folder / "capture.avi"), cv2.VideoWriter_fourcc(*"MJPG"), cell.fps, camera.image_size)
+        writer = cv2.VideoWriter(str(work / "capture.avi"), cv2.VideoWriter_fourcc(*"MJPG"), cell.fps, camera.image_size)
         writer.set(cv2.VIDEOWRITER_PROP_QUALITY, MJPG_QUALITY)
     for frame in source:
         image = frame.image if frame.image.ndim == 3 else cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
         if writer is None:
-            cv2.imwrite(str(folder / "frames" / f"{frame.index:06d}.png"), frame.image)
+            cv2.imwrite(str(work / "frames" / f"{frame.index:06d}.png"), frame.image)
         else:
             writer.write(image)
     if writer is not None:
         writer.release()
-    write_truth(folder, camera, [(p.index, p.rvec, p.tvec) for p in poses])
-    (folder / "exposure_s.txt").write_text(f"{exposure_s:.4f}\n")
+    write_truth(work, camera, [(p.index, p.rvec, p.tvec) for p in poses])
+    (work / "exposure_s.txt").write_text(f"{exposure_s:.4f}\n")
+    if not (folder / "truth.json").exists():  # else another process finished first: its render stands
+        shutil.rmtree(folder, ignore_errors=True)  # a render cut short by the layout before this one
+        os.rename(work, folder)
+    shutil.rmtree(work, ignore_errors=True)
     print(f"rendered {folder.name}: {len(poses)} frames, exposure {exposure_s * 1e3:.0f} ms, "
           f"{time.perf_counter() - start:.0f} s", flush=True)
     return folder
