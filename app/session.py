@@ -221,7 +221,8 @@ class CalibrationSession(SessionFinish):
         return self._outcome(frame, detection, pose, decision, blur, motion)
 
     def _view(self, frame: Frame, detection: Detection, edges: EdgeBlur | None = None) -> View:
-        """The frame as the solver takes it, refined on the checker's edges unless --corners opencv."""
+        """The frame as the solver takes it, its corners also refined on the checker's edges unless --corners
+        opencv or a fisheye working model (`SessionFinish._refines_views`)."""
         return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges)
 
     def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
