@@ -237,42 +237,52 @@ class Viewer:
         The image goes out every frame (it is the live view) unless `image` is False because the
         capture thread logs previews itself; the coverage boxes and the guidance only when they
         change, since latest-at queries keep showing the last value. Coverage is read from the
-        session's own map on the outcome, so custom requirements show as they are.
+        session's own map on the outcome, so custom requirements show as they are. A replay logs
+        the same things for all its frames at once (`app/viewer_columns.py`).
         """
         rec = self.recording
         rec.set_time("frame", sequence=frame.index)
         rec.set_time("capture_time", duration=frame.timestamp_ns * 1e-9)
-        w, h = frame.image_size
-        scale = 1.0 / preview_factor(w)
+        scale = 1.0 / preview_factor(frame.image_size[0])
         if image:
             self._log_image(frame, jpeg)  # `jpeg`: its preview, already encoded (the frame may hold no pixels then)
-
-        decision = outcome.decision
-        text = f"frame {frame.index}: {decision.reason}" + (f" ({decision.detail})" if decision.detail else "")
-        colour = _fate_colour(decision.reason)
+        text, level, colour = decision_line(outcome, frame)
         corners = outcome.detection.corners_px
         if corners.shape[0]:
-            rec.log(paths.CORNERS, rr.Points2D(corners.astype(np.float32) * scale, colors=colour, radii=3.0,
-                                               labels=[decision.reason], show_labels=False))
+            rec.log(paths.CORNERS, rr.Points2D(corners.astype(np.float32) * scale, colors=colour, radii=CORNER_RADIUS,
+                                               labels=[outcome.decision.reason], show_labels=False))
         else:
             rec.log(paths.CORNERS, rr.Points2D(np.zeros((0, 2), np.float32)))
-        self._log_pose_axes(outcome, scale)
-        level = "INFO" if decision.accepted else "WARN" if colour != _UNUSABLE else "DEBUG"
+        axes = pose_axes_px(outcome, scale)
+        if axes is not None:
+            rec.log(paths.AXES, rr.LineStrips2D(axes, colors=AXIS_COLOURS, radii=AXIS_RADIUS, draw_order=AXIS_ORDER)
+                    if axes else rr.LineStrips2D([]))
         rec.log(paths.DECISIONS, rr.TextLog(text, level=level, color=colour))
+        self.log_changes(outcome, frame, now_s=time.perf_counter())
+        arrow = target_arrow_px(outcome, scale)
+        if arrow is CLEAR:
+            rec.log(paths.TARGET_ARROW, rr.Clear(recursive=False))
+        elif arrow is not None:
+            rec.log(paths.TARGET_ARROW, rr.Arrows2D(origins=[arrow[0]], vectors=[arrow[1]], colors=[ARROW_COLOUR],
+                                                    radii=ARROW_RADIUS, draw_order=ARROW_ORDER))
 
-        if decision.accepted:
+    def log_changes(self, outcome: FrameOutcome, frame: Frame, *, now_s: float) -> None:
+        """What a processed frame logs only when it changed: coverage (on a kept frame), the ghost
+        board and its sentence, progress; and the processed frame rate (`now_s`: when the frame was
+        processed, perf_counter seconds), every 10th frame. The frame's time must be set."""
+        scale = 1.0 / preview_factor(frame.image_size[0])
+        if outcome.decision.accepted:
             self._log_coverage(outcome.coverage, frame, scale)
-        self._log_guidance(outcome, (w, h), scale)
-
+        self._log_guidance(outcome, frame.image_size, scale)
+        rec = self.recording
         p = outcome.progress
-        now = time.perf_counter()
-        if self._last_log_s is not None and now > self._last_log_s:
+        if self._last_log_s is not None and now_s > self._last_log_s:
             # frames the pipeline processed per second, smoothed over ~10 frames
-            rate = 1.0 / (now - self._last_log_s)
+            rate = 1.0 / (now_s - self._last_log_s)
             self._fps = rate if self._fps is None else 0.9 * self._fps + 0.1 * rate
             if frame.index % 10 == 0:
                 rec.log(paths.PROCESSED_FPS, rr.Scalars(self._fps))
-        self._last_log_s = now
+        self._last_log_s = now_s
         # Each log call costs ~0.1 ms; the progress values change only when a frame is kept or a solve
         # ran, and a time series holds its last value in between.
         progress = (p.frames_accepted, round(p.coverage, 4), p.expected_error_px)
@@ -283,23 +293,6 @@ class Viewer:
             if p.expected_error_px is not None and p.target_px is not None:  # the target beside every E point: a line
                 rec.log(paths.EXPECTED_ERROR, rr.Scalars(p.expected_error_px))
                 rec.log(paths.ERROR_TARGET, rr.Scalars(p.target_px))
-
-    def _log_pose_axes(self, outcome: FrameOutcome, scale: float) -> None:
-        """The board's x (red), y (green) and z (blue, towards the camera) axes from the pose estimate."""
-        pose = outcome.pose
-        if pose is None:
-            self.recording.log(paths.AXES, rr.LineStrips2D([]))
-            return
-        obj = outcome.detection.object_points_m.astype(np.float64)
-        origin = obj.mean(axis=0)
-        length = 0.5 * float(np.ptp(obj[:, 0]) + np.ptp(obj[:, 1])) / 2 or 0.05
-        ends = origin + np.array([[0, 0, 0], [length, 0, 0], [0, length, 0], [0, 0, -length]])
-        px = outcome.camera.project(ends, pose.rvec, pose.tvec) * scale
-        if not np.all(np.isfinite(px)):
-            return
-        strips = [np.stack([px[0], px[k]]).astype(np.float32) for k in (1, 2, 3)]
-        self.recording.log(paths.AXES, rr.LineStrips2D(strips, colors=[(230, 40, 40), (40, 200, 40), (60, 90, 255)],
-                                                       radii=2.0, draw_order=20.0))
 
     def _log_coverage(self, coverage: CoverageMap, frame: Frame, scale: float) -> None:
         """Region cells as boxes over the preview: red (empty) to green (requirement met)."""
@@ -321,12 +314,11 @@ class Viewer:
         self.recording.log(paths.TILT_DISTANCE, rr.BarChart(np.asarray(bars, np.float32)))
 
     def _log_guidance(self, outcome: FrameOutcome, size: tuple[int, int], scale: float) -> None:
-        """The ghost board where the board should go, the sentence beside it, and an arrow to it.
+        """The ghost board where the board should go and the sentence beside it, when the target changes.
 
         The ghost is the chessboard's outline at the target pose, projected through the current
         intrinsics (perspective and tilt as the person will see the board there), drawn along
-        its edges so a fisheye bows it as it bows the board; it is logged when the target changes.
-        The arrow runs from the board's centre now to the target's, on every frame with a pose.
+        its edges so a fisheye bows it as it bows the board. The arrow to it: `target_arrow_px`.
         """
         g = outcome.guidance
         target = g.target
@@ -342,15 +334,6 @@ class Viewer:
                 ghost = ghost_outline_px(outcome.camera, target) * scale
                 rec.log(paths.TARGET, rr.LineStrips2D([ghost.astype(np.float32)], colors=[(0, 200, 255)], radii=3.0,
                                                       labels=[g.sentence], show_labels=True, draw_order=10.0))
-        if target is None or outcome.pose is None:
-            rec.log(paths.TARGET_ARROW, rr.Clear(recursive=False))
-            return
-        here = outcome.board_centre_px
-        if here is None:
-            return
-        there = np.asarray(target.centre_px, np.float64)
-        rec.log(paths.TARGET_ARROW, rr.Arrows2D(origins=[here * scale], vectors=[(there - here) * scale],
-                                                colors=[(0, 200, 255)], radii=2.0, draw_order=11.0))
 
     # --- the end -------------------------------------------------------------------------------
     def log_result(self, result: SessionResult, out_dir: Path) -> None:
@@ -384,6 +367,53 @@ class Viewer:
                 ok, data = cv2.imencode(".png", picture)
                 if ok:
                     rec.log(entity, rr.EncodedImage(contents=data.tobytes(), media_type="image/png"))
+
+
+# What every processed frame logs, shared by `Viewer.log_frame` and a replay's columns (app/viewer_columns.py).
+CORNER_RADIUS = 3.0
+AXIS_COLOURS = [(230, 40, 40), (40, 200, 40), (60, 90, 255)]  # the board's x, y and z (towards the camera)
+AXIS_RADIUS, AXIS_ORDER = 2.0, 20.0
+ARROW_COLOUR, ARROW_RADIUS, ARROW_ORDER = (0, 200, 255), 2.0, 11.0
+CLEAR = object()  # `target_arrow_px`: no target or no pose, the arrow is cleared
+
+
+def decision_line(outcome: FrameOutcome, frame: Frame) -> tuple[str, str, tuple[int, int, int]]:
+    """The decisions log's line for a frame: (text, level, its fate's colour)."""
+    decision = outcome.decision
+    text = f"frame {frame.index}: {decision.reason}" + (f" ({decision.detail})" if decision.detail else "")
+    colour = _fate_colour(decision.reason)
+    level = "INFO" if decision.accepted else "WARN" if colour != _UNUSABLE else "DEBUG"
+    return text, level, colour
+
+
+def pose_axes_px(outcome: FrameOutcome, scale: float) -> list[np.ndarray] | None:
+    """The board's x, y and z axes from the pose estimate, as three (2, 2) float32 preview-pixel strips;
+    [] without a pose, None where they do not project (nothing is logged then)."""
+    pose = outcome.pose
+    if pose is None:
+        return []
+    obj = outcome.detection.object_points_m.astype(np.float64)
+    origin = obj.mean(axis=0)
+    length = 0.5 * float(np.ptp(obj[:, 0]) + np.ptp(obj[:, 1])) / 2 or 0.05
+    ends = origin + np.array([[0, 0, 0], [length, 0, 0], [0, length, 0], [0, 0, -length]])
+    px = outcome.camera.project(ends, pose.rvec, pose.tvec) * scale
+    if not np.all(np.isfinite(px)):
+        return None
+    return [np.stack([px[0], px[k]]).astype(np.float32) for k in (1, 2, 3)]
+
+
+def target_arrow_px(outcome: FrameOutcome, scale: float) -> tuple[np.ndarray, np.ndarray] | object | None:
+    """(origin, vector) in preview pixels of the arrow from the board's centre now to the target's;
+    `CLEAR` without a target or a pose; None when the board's centre is unknown (nothing is logged)."""
+    target = outcome.guidance.target
+    if target is None or outcome.pose is None:
+        return CLEAR
+    here = outcome.board_centre_px
+    if here is None:
+        return None
+    there = np.asarray(target.centre_px, np.float64)
+    return np.asarray(here, np.float64) * scale, (there - here) * scale
+
 
 
 def _stop(server: subprocess.Popen[bytes]) -> None:

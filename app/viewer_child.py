@@ -19,14 +19,15 @@ if TYPE_CHECKING:
     from calibcoach.drivers.base import Frame
 
 
-def log_session(out_dir: Path, frames: Sequence[tuple[FrameOutcome, Frame, bytes | None]], messages: BinaryIO) -> None:
-    """Write out_dir/session.rrd: `frames` first, then each message until the pipe closes."""
+def log_session(out_dir: Path, frames: Sequence[tuple[FrameOutcome, Frame, bytes | None, float]], messages: BinaryIO) -> None:
+    """Write out_dir/session.rrd: `frames` first (outcome, frame, preview JPEG, when it was judged;
+    as columns), then each message until the pipe closes."""
     from calibcoach.app.viewer import Viewer  # rerun: ~0.25 s, beside the replay's final solve
+    from calibcoach.app.viewer_columns import log_frames
 
     viewer = Viewer.open("none", out_dir=out_dir)
     try:
-        for outcome, frame, jpeg in frames:
-            viewer.log_frame(outcome, frame, jpeg=jpeg)
+        log_frames(viewer, frames)
         while len(head := messages.read(4)) == 4:
             size = int.from_bytes(head, "big")
             blob = messages.read(size)

@@ -10,7 +10,7 @@ While the source is read, each frame's preview JPEG is encoded on a thread here 
 the GIL) and kept with the outcome and the frame without its pixels (~15 KB a 720p frame). When
 the reading is done (`start()`), the process forks: the child is born holding those frames and
 every module the replay imported (NumPy, OpenCV, calibcoach), so it imports only rerun and writes
-session.rrd (app/viewer_child.py) on the other core while the final solve and the outputs are
+session.rrd (app/viewer_child.py, the frames as columns: app/viewer_columns.py) on the other core while the final solve and the outputs are
 computed here. Against a child started with the replay and sent every frame pickled through a
 pipe, that is ~0.3 s less CPU on a 720p replay (its own interpreter and imports, pickling both
 ways), at a time when both cores are busy. What comes later (the result) goes down a pipe.
@@ -31,6 +31,7 @@ import queue
 import signal
 import sys
 import threading
+import time
 import traceback
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -59,7 +60,8 @@ class ProcessViewer:
 
     def __init__(self, out_dir: Path) -> None:
         self._out_dir = Path(out_dir)
-        self._frames: list[tuple[FrameOutcome, Frame, bytes | None]] = []  # what the child is born with
+        # what the child is born with: (outcome, frame without pixels, preview JPEG, when the replay judged it)
+        self._frames: list[tuple[FrameOutcome, Frame, bytes | None, float]] = []
         self._error: Exception | None = None  # what the encoding thread hit
         self._closed = False
         self._child: int | None = None  # its pid, once forked
@@ -68,23 +70,23 @@ class ProcessViewer:
         self._reader: threading.Thread | None = None
         # Previews are encoded on a thread of their own, off the replay's path; the queue bounds the
         # full frames held meanwhile (~30 MB at 720p).
-        self._outbox: queue.Queue[tuple[FrameOutcome, Frame] | None] = queue.Queue(maxsize=_MAX_PENDING)
+        self._outbox: queue.Queue[tuple[FrameOutcome, Frame, float] | None] = queue.Queue(maxsize=_MAX_PENDING)
         self._encoder = threading.Thread(target=self._encode_all, name="rerun-previews", daemon=True)
         self._encoder.start()
 
     def log_frame(self, outcome: FrameOutcome, frame: Frame) -> None:
         if self._child is not None or self._closed:
             raise RuntimeError("log_frame after start(): the child writing session.rrd was born with the frames before it")
-        self._outbox.put((outcome_for_log(outcome), frame))
+        self._outbox.put((outcome_for_log(outcome), frame, time.perf_counter()))  # its time: the processed frame rate
 
     def _encode_all(self) -> None:
         while (item := self._outbox.get()) is not None:
             if self._error is not None:
                 continue  # keep taking, so the replay never blocks on a full queue; close() reports it
             try:
-                outcome, frame = item
+                outcome, frame, judged_s = item
                 pixelless, jpeg = frame_for_log(frame)
-                self._frames.append((outcome, pixelless, jpeg))
+                self._frames.append((outcome, pixelless, jpeg, judged_s))
             except Exception as exc:  # noqa: BLE001 - handed to close()
                 self._error = exc
 
