@@ -98,7 +98,7 @@ class _Feeder:
     Fully detected frames go through the session's judgement; tracked frames wait until a fully
     detected frame of their hold (before or after them) has been judged, then join the reserve if
     the hold was usable and the board stood still on both sides of each (`_still_repeats`) or, where
-    it moved more, the frame's own image shows it sharp (`CalibrationSession.sharp_enough`).
+    it moved more, the frame's own image shows it sharp (`CalibrationSession.sharp_edges`).
     Frames skipped in transit are only counted as seen.
     """
 
@@ -199,10 +199,18 @@ class _Feeder:
             # board's outer corners 2-4 px a frame: the bound alone kept half the still frames).
             still = _still_repeats(hold, self.settings.selector.max_smear_px)
             speeds = _repeat_speeds(hold)
+            blurs: list[float | None] = [None] * len(still)
             if usable:
-                still = [ok or session.sharp_enough(f, d, motion_px_s=v)
-                         for (f, d, _s), ok, v in zip(hold.repeats, still, speeds, strict=True)]
-            session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable)
+                own = [None if ok else session.sharp_edges(f, d, motion_px_s=v)
+                       for (f, d, _s), ok, v in zip(hold.repeats, still, speeds, strict=True)]
+                still = [ok or edges is not None for ok, edges in zip(still, own, strict=True)]
+                # the blur the masked corners keep clear of: a repeat's own where measured, else the
+                # hold's judged frame's (a usable one first)
+                judged = sorted((hold.before, hold.after), key=lambda i: self._usable.get(i) != "usable")
+                hold_blur = session.hold_blur_px(judged)
+                blurs = [hold_blur if edges is None else edges.blur_px for edges in own]
+            session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable,
+                                     blur_px=[b for b, ok in zip(blurs, still, strict=True) if ok])
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
 
 

@@ -135,7 +135,7 @@ class ChildScan:
 def _pixels_for_the_session(seen: Seen) -> np.ndarray:
     """The pixels the replay needs of a frame: a tracked or skipped frame's in grey only.
 
-    The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_enough`)
+    The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_edges`)
     and only counts a frame skipped in transit; neither is logged or previewed, so of a colour
     frame the grey conversion the scan already made crosses (a third of the bytes, and no second
     conversion in the replay). Frames the session decides keep their colour (previews, the check

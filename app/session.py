@@ -107,6 +107,7 @@ class CalibrationSession(SessionFinish):
         self._check_image: tuple[int, np.ndarray] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
+        self._judged_blur: dict[int, float] = {}  # frame index -> `EdgeBlur.blur_px` of each frame whose edges were measured
         self._repeats: list[View] = []  # the final solve's repeats of held poses, added after the model choice
         self.budget_fill: tuple[int, int] = (0, 0)  # (frames added at the end, candidates they came from)
         self._candidates: list[CandidatePose] = []
@@ -142,28 +143,42 @@ class CalibrationSession(SessionFinish):
         before it the field-of-view guess (`SessionSettings.hfov_guess_deg`, --fov)."""
         return self.camera
 
-    def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool) -> None:
+    def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool,
+                         blur_px: Sequence[float | None] | None = None) -> None:
         """Frames a replay tracked through a hold instead of detecting them (app/scan.py).
 
         `usable`: the session judged a fully detected frame of the same hold usable (sharp, enough
         corners, not collinear), and each repeat was tracked as still on both sides. Such repeats
         join the reserve, from which the final solve takes them to average each pose's corner noise
-        (`_fill_budget`); otherwise they are only counted as seen.
+        (`_fill_budget`); otherwise they are only counted as seen. `blur_px`: each repeat's edge blur
+        where already known (`hold_blur_px`, or its own from `sharp_edges`), for the masked corners'
+        margin; None entries are measured on the repeat's image.
         """
-        for frame, detection in repeats:
+        for i, (frame, detection) in enumerate(repeats):
             self.frames_seen += 1
             if usable and detection.corner_count >= self.settings.selector.min_corners and not self._drifted(frame.index):
-                self._reserve.append((self._view(frame, detection), 1.0))
+                self._reserve.append((self._view(frame, detection, blur_px=None if blur_px is None else blur_px[i]), 1.0))
 
-    def sharp_enough(self, frame: Frame, detection: Detection, *, motion_px_s: float | None) -> bool:
-        """Whether a tracked frame's own image passes the selector's smear and blur tests (`FrameSelector.unsharp`).
+    def hold_blur_px(self, frame_indices: Sequence[int | None]) -> float | None:
+        """The edge blur measured on the first of `frame_indices` (a hold's judged frames) that had it measured.
+
+        A held board's tracked frames show it at the judged frame's pose, a pixel or two away, with
+        the same lens blur; and a repeat whose stillness is in doubt is measured on its own
+        (`sharp_edges`). Measuring each repeat again took ~40% of a replay's session CPU (the
+        masked corners only need the blur for the margin they keep from the markers' edges).
+        """
+        return next((self._judged_blur[i] for i in frame_indices if i is not None and i in self._judged_blur), None)
+
+    def sharp_edges(self, frame: Frame, detection: Detection, *, motion_px_s: float | None) -> EdgeBlur | None:
+        """A tracked frame's edge widths when its own image passes the selector's smear and blur tests
+        (`FrameSelector.unsharp`), else None.
 
         `motion_px_s`: the board's median corner speed into and out of the frame (only a hint,
         as for detected frames, and ignored where the source has no motion gate: photo folders).
         """
         edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
         motion = motion_px_s if self.settings.use_motion_gate else None
-        return self.selector.unsharp(motion_px_s=motion, blur_px=edges.sharp_px, edges=edges) is None
+        return edges if self.selector.unsharp(motion_px_s=motion, blur_px=edges.sharp_px, edges=edges) is None else None
 
     def process(self, frame: Frame, detection: Detection, *, following: tuple[Detection, int] | None = None,
                 in_transit: bool = False) -> FrameOutcome:
@@ -199,6 +214,7 @@ class CalibrationSession(SessionFinish):
         if gated is None:
             edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
             blur = edges.sharp_px
+            self._judged_blur[frame.index] = edges.blur_px
             best = self.guide.best
             needed = max(MIN_ACCEPT_CUT, ACCEPT_SHARE * (best.error_cut if best is not None else 0.0))
             decision, contribution = self.selector.decide(
@@ -220,10 +236,10 @@ class CalibrationSession(SessionFinish):
         self.guide.observe(frame.timestamp_ns, pose, accepted=len(self.views))
         return self._outcome(frame, detection, pose, decision, blur, motion)
 
-    def _view(self, frame: Frame, detection: Detection, edges: EdgeBlur | None = None) -> View:
+    def _view(self, frame: Frame, detection: Detection, edges: EdgeBlur | None = None, *, blur_px: float | None = None) -> View:
         """The frame as the solver takes it, its corners also refined on the checker's edges unless --corners
         opencv or a fisheye working model (`SessionFinish._refines_views`)."""
-        return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges)
+        return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges, blur_px=blur_px)
 
     def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
         """Corner speed around this frame, px/s: the larger of the backward and forward differences."""

@@ -60,17 +60,19 @@ def view_detection(view: View) -> Detection:
 
 
 def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: bool = True,
-               edges: EdgeBlur | None = None) -> View:
+               edges: EdgeBlur | None = None, blur_px: float | None = None) -> View:
     """A detected frame as the solver takes it, with its corners also refined on the checker's edges (`refine`).
 
-    `edges`: the frame's edge widths where already measured; the refinement's mask keeps clear of
-    the markers' edges by twice the blurrier family's width.
+    `edges`: the frame's edge widths where already measured, or `blur_px` their blurrier family's
+    (`EdgeBlur.blur_px`: a held board's, measured on another frame of the hold); the refinement's
+    mask keeps clear of the markers' edges by twice that width. Neither: measured here.
     """
     corners = detection.corners_px.astype(np.float64)
     refined = None
     if refine:
         grey = frame.grey()
-        blur = (edges or edge_blur(grey, corners, detection.object_points_m)).blur_px
+        blur = edges.blur_px if edges is not None else blur_px if blur_px is not None else \
+            edge_blur(grey, corners, detection.object_points_m).blur_px
         refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
                                           board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
