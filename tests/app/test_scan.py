@@ -183,6 +183,29 @@ def test_tracked_frames_of_usable_holds_join_the_final_solve(recordings_dir: Pat
     assert abs(result.calibration.rms_px / dense_result.calibration.rms_px - 1) < 0.1
 
 
+def test_held_repeats_refine_their_corners_with_the_blur_measured_on_their_hold(recordings_dir: Path, tmp_path: Path,
+                                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # Measuring each repeat's own edge blur took ~40% of a replay's session CPU; a held board's
+    # blur is its judged frame's, so only judged frames (and repeats whose stillness is in doubt) are measured.
+    from calibcoach.app import session_finish
+
+    measured_for_views: list[int] = []
+    measure = session_finish.edge_blur
+
+    def counted(grey, corners, object_points):  # noqa: ANN001 - edge_blur's signature
+        measured_for_views.append(len(corners))
+        return measure(grey, corners, object_points)
+
+    monkeypatch.setattr(session_finish, "edge_blur", counted)
+    folder = _held_folder(recordings_dir, tmp_path, [0, 30, 66], hold=16)
+    settings = SessionSettings(selector=SelectorSettings(max_frames=6), stop_when_done=False)
+    session, stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings)
+    repeats = [v for v, _q in session._reserve if v.frame_index % REDETECT_EVERY and v.frame_index % 16]
+    assert stats.tracked >= 30 and len(repeats) >= 25
+    assert all(v.refined_px is not None for v in repeats)  # refined, as every view of an ordinary lens
+    assert measured_for_views == []  # ... with the hold's blur: no repeat measured its own
+
+
 def _jittered_folder(recordings_dir: Path, folder: Path, views: list[int], hold: int, *, smear_px: int) -> Path:
     """1080p holds whose board jumps 2 px every frame (a shaky hand at a short exposure: no smear
     within it) or, with `smear_px`, whose frames between the first and last of each hold are also
