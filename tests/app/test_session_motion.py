@@ -1,0 +1,45 @@
+"""The board's speed at a frame, which smear and rolling shutter follow: measured across the frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibcoach.app.session import CalibrationSession, SessionSettings
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.drivers.base import Frame
+from calibcoach.drivers.lens import CameraModel
+
+from _synthetic import detection_at
+
+CAMERA = CameraModel("pinhole", [[900, 0, 640], [0, 900, 360], [0, 0, 1]], [-0.1, 0.05, 0, 0, 0], (1280, 720))
+FRAME_NS = 33_333_333  # 30 fps
+
+
+def speed_at(before_x: float | None, after_x: float | None, *, gate: bool = True) -> float | None:
+    """The session's speed for a board at x = 640 px whose frames before and after show it at those x."""
+    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings(use_motion_gate=gate))
+    here = detection_at(CAMERA, (640, 360), 0.9)
+    if before_x is not None:
+        session._previous = (detection_at(CAMERA, (before_x, 360), 0.9), 0)
+    following = None if after_x is None else (detection_at(CAMERA, (after_x, 360), 0.9), 2 * FRAME_NS)
+    frame = Frame(1, FRAME_NS, np.zeros((720, 1280), np.uint8))
+    return session._motion_px_s(frame, here, following)
+
+
+def test_a_board_at_the_turn_of_a_swing_is_still_at_the_frame() -> None:
+    # 4 px away before and after (120 px/s either side): the board stands still at the frame itself
+    assert speed_at(636, 636) == pytest.approx(0.0, abs=1.0)
+
+
+def test_a_steady_move_is_its_speed_and_the_start_of_a_move_half_of_it() -> None:
+    assert speed_at(636, 644) == pytest.approx(120.0, rel=0.05)
+    # still before, 4 px on after: the exposure's second half smears, its first does not
+    assert speed_at(640, 644) == pytest.approx(60.0, rel=0.05)
+
+
+def test_with_one_neighbour_known_the_one_sided_difference_is_used() -> None:
+    assert speed_at(None, 644) == pytest.approx(120.0, rel=0.05)
+    assert speed_at(636, None) == pytest.approx(120.0, rel=0.05)
+    assert speed_at(None, None) is None
+    assert speed_at(636, 644, gate=False) is None  # a folder of photos: no speed at all
