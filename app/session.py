@@ -77,6 +77,9 @@ _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 _LENS_MOVED_PX = 2.0
 _FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
 
+# Judged frames whose edge blur a replay's holds may borrow: a hold is settled as soon as the judged
+# frame after it is, so only the last few are ever asked for; a live session runs for hours.
+_JUDGED_BLUR_KEPT = 256
 
 class CalibrationSession(SessionFinish):
     """Feeds frames through selection and incremental solving; see the module docstring."""
@@ -107,7 +110,8 @@ class CalibrationSession(SessionFinish):
         self._check_image: tuple[int, np.ndarray] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
-        self._judged_blur: dict[int, float] = {}  # frame index -> `EdgeBlur.blur_px` of each frame whose edges were measured
+        # frame index -> `EdgeBlur.blur_px` of the last frames whose edges were measured (`hold_blur_px`)
+        self._judged_blur: dict[int, float] = {}
         self._repeats: list[View] = []  # the final solve's repeats of held poses, added after the model choice
         self.budget_fill: tuple[int, int] = (0, 0)  # (frames added at the end, candidates they came from)
         self._candidates: list[CandidatePose] = []
@@ -216,6 +220,8 @@ class CalibrationSession(SessionFinish):
             edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
             blur = edges.sharp_px
             self._judged_blur[frame.index] = edges.blur_px
+            if len(self._judged_blur) > _JUDGED_BLUR_KEPT:
+                del self._judged_blur[next(iter(self._judged_blur))]  # the oldest: its holds have been settled
             best = self.guide.best
             needed = max(MIN_ACCEPT_CUT, ACCEPT_SHARE * (best.error_cut if best is not None else 0.0))
             decision, contribution = self.selector.decide(
