@@ -81,6 +81,7 @@ _FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the 
 # frame after it is, so only the last few are ever asked for; a live session runs for hours.
 _JUDGED_BLUR_KEPT = 256
 
+
 class CalibrationSession(SessionFinish):
     """Feeds frames through selection and incremental solving; see the module docstring."""
 

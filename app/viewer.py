@@ -415,7 +415,6 @@ def target_arrow_px(outcome: FrameOutcome, scale: float) -> tuple[np.ndarray, np
     return np.asarray(here, np.float64) * scale, (there - here) * scale
 
 
-
 def _stop(server: subprocess.Popen[bytes]) -> None:
     """Stop the web server child (its own process group, started by us), politely then firmly."""
     if server.poll() is not None:

@@ -102,6 +102,7 @@ def log_frames(viewer: Viewer, frames: Sequence[tuple[FrameOutcome, Frame, bytes
             *rr.Points2D.columns(colors=point_colours, radii=[CORNER_RADIUS] * len(points), labels=point_labels,
                                  show_labels=[False] * len(points)),
         ])
+    if decisions.frames:
         rr.send_columns(paths.DECISIONS, indexes=decisions.indexes(), recording=rec,
                         columns=rr.TextLog.columns(text=[t for t, _l, _c in lines], level=[lv for _t, lv, _c in lines],
                                                    color=[c for _t, _l, c in lines]))

@@ -11,9 +11,9 @@ the GIL) and kept with the outcome and the frame without its pixels (~15 KB a 72
 the reading is done (`start()`), the process forks: the child is born holding those frames and
 every module the replay imported (NumPy, OpenCV, calibcoach), so it imports only rerun and writes
 session.rrd (app/viewer_child.py; the frames as columns, app/viewer_columns.py) on the other core
-while the final solve and the outputs are computed here. Against a child started with the replay and sent every frame pickled through a
-pipe, that is ~0.3 s less CPU on a 720p replay (its own interpreter and imports, pickling both
-ways), at a time when both cores are busy. What comes later (the result) goes down a pipe.
+while the final solve and the outputs are computed here. Against a child started with the replay
+and sent every frame pickled through a pipe, that is ~0.3 s less CPU on a 720p replay (its own
+interpreter and imports, pickling both ways), at a time when both cores are busy. What comes later (the result) goes down a pipe.
 
 The child runs in a session of its own, so the Ctrl-C meant for the replay does not cut the log
 short; its stderr comes back on a pipe, and `close()` waits for it and raises, naming the child's
