@@ -234,6 +234,7 @@ class SessionFinish:
             noise_px=noise,
             target_px=self.settings.error_target_px,
             structure=structure,
+            reachable_error_px=uncertainty.expected_error_where(coverage.reachable_at(uncertainty.grid_x_px, uncertainty.grid_y_px)),
         )
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "

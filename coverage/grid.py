@@ -197,6 +197,13 @@ class CoverageMap:
     def is_complete(self) -> bool:
         return self.completeness() >= 0.999
 
+    def reachable_at(self, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+        """(len(y_px), len(x_px)) bool: which points of a pixel grid lie in a region cell a board can be seen in."""
+        w, h = self.image_size
+        r = np.clip((np.asarray(y_px, np.float64) / h * self.rows).astype(int), 0, self.rows - 1)
+        c = np.clip((np.asarray(x_px, np.float64) / w * self.cols).astype(int), 0, self.cols - 1)
+        return self.reachable[np.ix_(r, c)]
+
     def missing_regions(self) -> list[tuple[int, int, float]]:
         """(row, col, fill) of region cells below their requirement, the most important first."""
         fill = self.region_fill()

@@ -91,6 +91,11 @@ class UncertaintyMap:
         values = self.error_px[self.covered] if self.covered.any() else self.error_px.reshape(-1)
         return float(np.sqrt(np.mean(values**2)))
 
+    def expected_error_where(self, mask: np.ndarray) -> float:
+        """RMS of the expected projection error over the grid points `mask` (GY, GX) marks (px); nan for none."""
+        values = self.error_px[np.asarray(mask, bool)]
+        return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
     @property
     def p95_covered_px(self) -> float:
         values = self.sigma_px[self.covered] if self.covered.any() else self.sigma_px.reshape(-1)

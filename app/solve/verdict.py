@@ -2,9 +2,10 @@
 
 RMS reprojection error only says the model fits the frames it saw. A capture of frontal, centred
 frames fits beautifully and is still tens of pixels wrong at the edges, so a calibration is
-trusted only when the coverage map is (nearly) complete and the expected projection error E where
-the board was seen is small against the camera's own corner noise; otherwise the grade is
-"insufficient" whatever the RMS.
+trusted only when the coverage map is (nearly) complete -- or lacks only image regions into which
+the model's extrapolation is pinned down, by E over the whole image -- and the expected projection
+error E where the board was seen is small against the camera's own corner noise; otherwise the
+grade is "insufficient" whatever the RMS.
 """
 
 from __future__ import annotations
@@ -37,6 +38,16 @@ ERROR_TARGET_CAP_PX = 0.05
 ERROR_TRUST_PX = 0.20
 NOISY_CORNERS_PX = 0.3  # corner noise per coordinate above which the verdict names noise as the limit
 MIN_COVERAGE_TO_TRUST = 0.85
+# ... unless only image regions are missing and the model pins them down anyway. Coverage stands in
+# for what the data determines; where the board never went, the projection there is the model's
+# extrapolation, and the solve's covariance says how well that is determined: E over the whole
+# reachable image (not just the covered region) is held to the same trust bound as E over the
+# covered region, because a point measured there carries that error. Tilted views and both ranges
+# are still required: they are what separates focal length from distance, and a linearised
+# covariance is at its least reliable along that valley. Fast-swinging captures that never reach
+# a third of the image (the messy renders: 82-83% coverage, all tilts and ranges) extrapolate to
+# 0.016-0.047 px against the truth over the whole image with E there 0.13-0.15 px; one that also
+# lacks tilts and ranges (60%, 0.58 px off) stays refused. bench/results/coverage_trust.md.
 
 
 def resolution_scale(image_size: tuple[int, int]) -> float:
@@ -85,6 +96,7 @@ def judge(
     noise_px: float,
     target_px: float | None = None,
     structure: ResidualStructure | None = None,
+    reachable_error_px: float | None = None,
 ) -> Verdict:
     """Grade a calibration; `trusted` is False when coverage or E is not good enough.
 
@@ -95,6 +107,8 @@ def judge(
             a flagged one is named with what to do about it. It does not change the grade: the
             coverage and E say how well the data pins the model down, this says what the model
             had to absorb.
+        reachable_error_px: E over every image point a board can be seen in, covered or not
+            (`UncertaintyMap.expected_error_where`); None: unknown, and short coverage is refused.
     """
     thresholds = rms_thresholds_px(image_size)
     grade_rms = rms_grade(calibration.rms_px, thresholds)
@@ -105,16 +119,31 @@ def judge(
         f"(< {thresholds[0]} excellent, < {thresholds[1]} good, < {thresholds[2]} acceptable at this resolution)."
     ]
     trusted = True
-    if coverage_completeness < MIN_COVERAGE_TO_TRUST:
+    trust_limit = max(ERROR_TRUST_PX * max(resolution_scale(image_size), 0.5), noise_px)
+    coverage_short = coverage_completeness < MIN_COVERAGE_TO_TRUST
+    # only image regions missing, and the model's extrapolation into them within the trust bound
+    extrapolated = (coverage_short and not coverage_missing.get("tilts") and not coverage_missing.get("distances")
+                    and reachable_error_px is not None and reachable_error_px <= trust_limit)
+    if extrapolated:
+        reasons.append(
+            f"Coverage is only {coverage_completeness * 100:.0f}% (below {MIN_COVERAGE_TO_TRUST * 100:.0f}%): "
+            + _missing_words(coverage_missing).rstrip(".")
+            + f". The lens model extrapolates into them: E over the whole image a board "
+            f"can be seen in is {reachable_error_px:.3f} px, within the {trust_limit:.3f} px trust bound, so it is "
+            "trusted; capture those regions if you need them measured rather than extrapolated.")
+    elif coverage_short:
         trusted = False
         reasons.append(f"Coverage is only {coverage_completeness * 100:.0f}% (needs {MIN_COVERAGE_TO_TRUST * 100:.0f}%): " + _missing_words(coverage_missing))
+        if reachable_error_px is not None and not coverage_missing.get("tilts") and not coverage_missing.get("distances"):
+            reasons.append(f"Only image regions are missing, but the model's extrapolation into them is not pinned down: "
+                           f"E over the whole image a board can be seen in is {reachable_error_px:.3f} px, "
+                           f"above the {trust_limit:.3f} px trust bound.")
     elif coverage_completeness < 0.999:
         reasons.append(f"Coverage {coverage_completeness * 100:.0f}%: " + _missing_words(coverage_missing))
     else:
         reasons.append("Coverage complete: every image region a board can be seen in, all tilt directions and ranges.")
     where = (f"expected projection error E over the region the board covered is {E:.3f} px "
              f"(p95 worst direction {uncertainty.p95_covered_px:.3f} px, whole image {uncertainty.p95_px:.3f} px)")
-    trust_limit = max(ERROR_TRUST_PX * max(resolution_scale(image_size), 0.5), noise_px)
     if E > trust_limit:
         trusted = False
         reasons.append(f"The {where}, above {trust_limit:.3f} px (its target is {target:.3f} px): "
@@ -141,7 +170,7 @@ def judge(
     if calibration.dropped_frames:
         reasons.append(f"{len(calibration.dropped_frames)} outlier frames were dropped before the final solve.")
     if not trusted:
-        reasons.append(_what_to_do(coverage_short=coverage_completeness < MIN_COVERAGE_TO_TRUST, excess=E / trust_limit,
+        reasons.append(_what_to_do(coverage_short=coverage_short and not extrapolated, excess=E / trust_limit,
                                    noise_px=noise_px, board_limits=board_limits))
         return Verdict("insufficient", False, grade_rms, tuple(reasons), thresholds)
     grade = grade_rms

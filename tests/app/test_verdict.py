@@ -120,6 +120,41 @@ def test_coverage_below_its_bound_is_not_trusted_whatever_the_rms() -> None:
     assert has(at, "Graded good rather than excellent: coverage or the expected error falls short of the target.")
 
 
+REGIONS_ONLY = {"regions": [(0, 5, 0.0), (1, 5, 0.0), (2, 5, 0.0)], "tilts": [], "distances": []}
+
+
+def test_missing_regions_the_model_extrapolates_into_within_the_trust_bound_are_trusted() -> None:
+    """A capture that never reached some image regions but showed every tilt and range is judged by E over the whole
+    image: the model's extrapolation into the regions is held to the trust bound E over the covered region is."""
+    def short(whole: float | None, missing=REGIONS_ONLY, noise=0.05):
+        return judge(calibration(0.1), coverage_completeness=0.82, coverage_missing=missing, uncertainty=umap(0.05),
+                     image_size=SIZE, noise_px=noise, reachable_error_px=whole)
+    at = short(ERROR_TRUST_PX)
+    assert at.trusted and at.grade == "good" and at.rms_grade == "excellent"  # graded down: coverage short, E above 0.025
+    assert has(at, "Coverage is only 82% (below 85%): missing 3 image regions. The lens "
+                   "model extrapolates into them: E over the whole image a board can be seen in is 0.200 px, within the "
+                   "0.200 px trust bound, so it is trusted")
+    assert not has(at, "Do not use")
+    above = short(ERROR_TRUST_PX + 1e-4)
+    assert not above.trusted and above.grade == "insufficient"
+    assert has(above, "Only image regions are missing, but the model's extrapolation into them is not pinned down: E over "
+                      "the whole image a board can be seen in is 0.200 px, above the 0.200 px trust bound.")
+    assert above.reasons[-1].startswith("Do not use this calibration: capture the missing views")
+    assert short(0.39, noise=0.4).trusted and not short(0.41, noise=0.4).trusted  # the bound is the noise when larger
+    assert not short(None).trusted  # no whole-image E: short coverage is refused as before
+    # tilts or ranges missing: refused however small the extrapolation's E (they separate focal length from distance)
+    for lacking in ({"tilts": ["steep_x"]}, {"distances": ["near"]}):
+        v = short(0.01, missing={**REGIONS_ONLY, **lacking})
+        assert not v.trusted and not has(v, "extrapolates") and not has(v, "Only image regions")
+
+
+def test_expected_error_where_is_the_rms_over_the_marked_points() -> None:
+    m = umap(0.05)  # covered half 0.05 px, the rest 0.5
+    assert m.expected_error_where(m.covered) == pytest.approx(0.05)
+    assert m.expected_error_where(np.ones((4, 8), bool)) == pytest.approx(np.sqrt((0.05**2 + 0.5**2) / 2))
+    assert np.isnan(m.expected_error_where(np.zeros((4, 8), bool)))
+
+
 def test_complete_coverage_is_said_so() -> None:
     full = verdict(coverage=0.999)
     assert has(full, "Coverage complete: every image region") and not has(full, "Coverage 99")

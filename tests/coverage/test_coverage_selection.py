@@ -123,6 +123,12 @@ def test_unreachable_regions_are_not_required() -> None:
     assert (0, 0) not in [(r, c) for r, c, _ in cmap.missing_regions()]
     assert cmap.region_weights[0, 0] == 0 and cmap.region_weights.sum() == pytest.approx(1.0)
     assert cmap.region_met()[0, 0] and not cmap.region_met()[0, 1]
+    # an uncertainty grid's points fall in the cells they lie in (cells are 213.3 x 180 px at 1280 x 720)
+    x = np.array([0.0, 213.0, 214.0, 1279.0])
+    y = np.array([0.0, 179.0, 181.0, 719.0])
+    at = cmap.reachable_at(x, y)
+    assert at.shape == (4, 4)
+    assert not at[0, 0] and not at[1, 1] and at[0, 2] and at[2, 1] and not at[3, 3] and at[3, 2]
 
 
 def test_selector_gates_each_reason() -> None:
