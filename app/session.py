@@ -74,7 +74,16 @@ MIN_ACCEPT_CUT = 0.005  # and by at least 0.5%
 _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 
 
-_LENS_MOVED_PX = 2.0
+# The candidate poses are rebuilt when the lens moved by more than this share of the image diagonal
+# (at least _LENS_MOVED_MIN_PX) since they were built. Ranking projects the candidates through the
+# current lens (their Jacobians, so what each would cut E by, are always current); only where their
+# corners land (visible or not, which region cell) comes from the lens they were built with, and
+# region cells are a sixth of the image wide: a shift of 1% of the diagonal (15 px at 720p) moves a
+# handful of corners across a cell border. A fixed 2 px rebuilt them after most solves of a narrow
+# lens seen in the middle only (pycamset's 25 deg cameras: the image corners, where nothing pins the
+# distortion, moved 4-47 px from solve to solve), 0.38 s a time for a 20 x 20 board.
+_LENS_MOVED_SHARE = 0.01
+_LENS_MOVED_MIN_PX = 2.0
 _FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
 
 # Judged frames whose edge blur a replay's holds may borrow: a hold is settled as soon as the judged
@@ -375,12 +384,14 @@ class CalibrationSession(SessionFinish):
     def _refresh_lens(self) -> None:
         """New intrinsics: candidate poses, ranges, reachable regions, and the map re-read from the kept frames.
 
-        The candidates (~0.15 s to build) are rebuilt only when the lens model moved by more than
-        `_LENS_MOVED_PX` anywhere in the image: later solves refine the intrinsics by fractions of
-        a pixel, which change neither which poses register nor where the board would be.
+        The candidates (~0.15 s to build at the default board, ~0.4 s at 20 x 20 squares) are rebuilt
+        only when the lens model moved by more than `_LENS_MOVED_SHARE` of the diagonal anywhere in the
+        image: later solves refine the intrinsics by fractions of a pixel, which change neither which
+        poses register nor where the board would be.
         """
         ranges = ranges_for(self.camera, self.geometry)
-        if self._candidates_camera is None or lens_moved_px(self._candidates_camera, self.camera) > _LENS_MOVED_PX:
+        moved_limit = max(_LENS_MOVED_MIN_PX, _LENS_MOVED_SHARE * float(np.hypot(*self.image_size)))
+        if self._candidates_camera is None or lens_moved_px(self._candidates_camera, self.camera) > moved_limit:
             self._candidates = candidate_poses(self.camera, self.geometry, ranges)
             self._candidates_camera = self.camera
         old = self.selector.coverage

@@ -97,6 +97,21 @@ def test_regions_beyond_a_fisheyes_image_circle_are_not_required() -> None:
     assert not session.selector.coverage.is_complete()
 
 
+def test_candidate_poses_are_rebuilt_only_when_the_lens_moved_by_a_share_of_the_image() -> None:
+    """A narrow lens seen in the middle moves its image corners by pixels from solve to solve; the candidates
+    (whose Jacobians the ranking takes from the current lens anyway) are rebuilt beyond 1% of the diagonal."""
+    session = calibcoach.Assistant(board=BOARD, image_size=(1280, 720), model="pinhole").session
+    base = CameraModel("pinhole", [[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]], np.zeros(5), (1280, 720))
+    session.camera = base
+    session._candidates_camera = None
+    session._refresh_lens()
+    built = session._candidates
+    for focal, rebuilt in ((912.0, False), (935.0, True)):  # edges move ~9 px, then ~23 px (limit 14.7 px at 720p)
+        session.camera = CameraModel("pinhole", [[focal, 0, 640], [0, focal, 360], [0, 0, 1]], np.zeros(5), (1280, 720))
+        session._refresh_lens()
+        assert (session._candidates is not built) == rebuilt
+
+
 # --- the closed loop ----------------------------------------------------------------------------
 
 
