@@ -43,6 +43,7 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.candidates import (
     CandidatePose,
     candidate_poses,
+    corners_to_reach,
     lens_moved_px,
     ranges_for,
     reachable_cells,
@@ -396,7 +397,7 @@ class CalibrationSession(SessionFinish):
             self._candidates_camera = self.camera
         old = self.selector.coverage
         reachable = reachable_cells(self._candidates, self.image_size, region_grid_shape(self.image_size),
-                                    old.requirements.corners_per_region_cell)
+                                    corners_to_reach(old.requirements.corners_per_region_cell, self.board.corner_count))
         self.selector.coverage = CoverageMap(self.image_size, old.requirements, ranges=ranges, reachable=reachable)
         for view in self.views:
             det = view_detection(view)

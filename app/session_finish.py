@@ -223,6 +223,7 @@ class SessionFinish:
         )
         stage("verdict")
         coverage = self._final_coverage(calibration)
+        reachable_error = uncertainty.expected_error_where(coverage.reachable_at(uncertainty.grid_x_px, uncertainty.grid_y_px))
         noise = noise_sigma_px(calibration.rms_px, n_points=calibration.corner_count,
                                n_params=len(calibration.intrinsic_names), n_views=len(calibration.views))
         verdict = judge(
@@ -234,7 +235,7 @@ class SessionFinish:
             noise_px=noise,
             target_px=self.settings.error_target_px,
             structure=structure,
-            reachable_error_px=uncertainty.expected_error_where(coverage.reachable_at(uncertainty.grid_x_px, uncertainty.grid_y_px)),
+            reachable_error_px=reachable_error,
         )
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
@@ -256,6 +257,7 @@ class SessionFinish:
             target_px=self.settings.error_target_px or error_target_px(noise, self.image_size),
             stop_reason=self.stop_reason,
             residual_structure=structure,
+            reachable_error_px=reachable_error,
         )
 
     def _fill_budget(self) -> None:

@@ -116,3 +116,5 @@ class SessionResult:
     stop_reason: str  # why the capture ended ("" when the source simply ran out)
     # residual patterns fixed to the board or to the image (None: not tested, e.g. a result built in a test)
     residual_structure: ResidualStructure | None = None
+    # E over every image point a board can be seen in, covered or not: what short coverage is judged on
+    reachable_error_px: float = float("nan")

@@ -41,7 +41,7 @@ def row(name: str) -> str:
     session, _stats = run_replay(open_source(path), BoardSpec())
     result = session.finish()
     u, cov = result.uncertainty, result.coverage
-    whole_E = u.expected_error_where(cov.reachable_at(u.grid_x_px, u.grid_y_px))
+    whole_E = result.reachable_error_px
     missing = cov.summary()["missing"]
     words = ", ".join(f"{len(v)} {k}" for k, v in missing.items() if v) or "-"  # type: ignore[union-attr]
     return (f"| {name} | {cov.completeness() * 100:.0f}% | {words} | {u.expected_error_px:.3f} | {whole_E:.3f} | "

@@ -32,6 +32,9 @@ TILTS_DEG = ((0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (0.0, 30.0), (0.0, -30.0),
 HEIGHT_SHARE = {"far": 0.38, "mid": 0.52, "near": 0.72}  # frontal board height over image height
 RANGE_NAMES = ("near", "mid", "far")
 MIN_TARGET_CORNERS = 16  # ~a quarter of the default board: a partial view that still pins its pose
+# ... for a smaller board a quarter of it, never under the method's 6 a frame needs to count: a
+# fixed 16 left a 4 x 5 board (12 corners) without a single candidate, so without guidance.
+MIN_FRAME_CORNERS = 6
 MIN_RANGE_M = 0.12  # no board corner closer to the lens than this (a hand, a focus limit)
 _READABLE_SHARE = 0.9  # far stays within 90% of the range where frontal markers become unreadable
 
@@ -103,9 +106,20 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
                     continue
                 placed.append(((ix, iy, it, name), centre, rng, name, tx, ty, rvec.copy(), tvec))
     views = virtual_views(camera, board, [(p[6], p[7]) for p in placed])
+    need = target_corners(len(board.corners_m))
     return [CandidatePose(key, (float(centre[0]), float(centre[1])), float(rng), name, float(tx), float(ty), view)
             for (key, centre, rng, name, tx, ty, _r, _t), view in zip(placed, views, strict=True)
-            if view.corner_count >= MIN_TARGET_CORNERS]
+            if view.corner_count >= need]
+
+
+def target_corners(board_corners: int) -> int:
+    """Detectable corners a candidate's view must show: MIN_TARGET_CORNERS, or a quarter of a smaller board.
+
+    Example:
+        >>> target_corners(70), target_corners(361), target_corners(12), target_corners(35)
+        (16, 16, 6, 8)
+    """
+    return max(MIN_FRAME_CORNERS, min(MIN_TARGET_CORNERS, board_corners // 4))
 
 
 def region_cell_counts(point_sets: Sequence[np.ndarray], image_size: tuple[int, int],
@@ -124,9 +138,30 @@ def region_cell_counts(point_sets: Sequence[np.ndarray], image_size: tuple[int, 
     return counts.reshape(len(point_sets), rows, cols)
 
 
+# A region cell asks for 10 corner observations (`CoverageRequirements`), a seventh of the default
+# board's 70 corners; a cell counts as reachable when one candidate pose puts that share of its
+# board there. Asking a small board for the default board's 10 at once asked caliscope's 4 x 5 board
+# (12 corners) for 83% of itself in one cell: no cell was reachable, the region axis stayed at zero
+# and no capture of it could ever be trusted. Its requirement itself (10 observations, over frames)
+# is unchanged.
+REACHABLE_SHARE_OF_BOARD = 1 / 7
+MIN_CORNERS_TO_REACH = 2
+
+
+def corners_to_reach(requirement: int, board_corners: int) -> int:
+    """Corners one candidate must put in a region cell for the cell to be reachable (see REACHABLE_SHARE_OF_BOARD).
+
+    Example:
+        >>> corners_to_reach(10, 70), corners_to_reach(10, 361), corners_to_reach(10, 12), corners_to_reach(10, 24)
+        (10, 10, 2, 3)
+    """
+    return max(MIN_CORNERS_TO_REACH, min(requirement, int(board_corners * REACHABLE_SHARE_OF_BOARD + 1e-9)))
+
+
 def reachable_cells(candidates: Sequence[CandidatePose], image_size: tuple[int, int], grid_shape: tuple[int, int],
                     need: int) -> np.ndarray:
-    """(rows, cols) bool: region cells into which some candidate puts at least `need` detectable corners.
+    """(rows, cols) bool: region cells into which some candidate puts at least `need` detectable corners
+    (`corners_to_reach`).
 
     These are the cells a board can be seen in on this lens: a fisheye's black corners, or image
     corners beyond ~85 deg where no board can be read, are not among them.

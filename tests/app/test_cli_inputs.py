@@ -90,6 +90,8 @@ def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path,
     data = json.loads((out / "calibration.json").read_text())
     assert data["verdict"]["grade"] == "insufficient" and data["verdict"]["trusted"] is False
     assert data["board"]["inverted"] is True
+    # E over the whole image a board can reach is recorded beside E over the covered region (23% covered: far above it)
+    assert data["uncertainty"]["reachable_error_px"] > 2 * data["uncertainty"]["expected_error_px"] > 0
     assert not (out / "camera_matrix.npy").exists()
     assert "no camera files" in stdout
     code, _, _ = run_cli(capsys, "calibrate", str(root / "video" / "cam_0.mp4"), "--board", str(root / "charuco.toml"),

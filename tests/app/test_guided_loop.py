@@ -112,6 +112,27 @@ def test_candidate_poses_are_rebuilt_only_when_the_lens_moved_by_a_share_of_the_
         assert (session._candidates is not built) == rebuilt
 
 
+@pytest.mark.parametrize(("squares", "need"), [((4, 5), 6), ((5, 7), 6), ((6, 8), 8)])
+def test_a_small_board_gets_targets_and_every_region_of_an_ordinary_lens(squares, need) -> None:
+    """A board with fewer corners than the default's quarter (16) is asked for a quarter of itself (at least the
+    method's 6) in a target, and a region cell is reachable when a seventh of it lands there: caliscope's 4 x 5
+    board (12 corners) had no candidate pose at all, so no guidance, and no region ever counted."""
+    from calibcoach.coverage.candidates import target_corners
+
+    board = calibcoach.BoardSpec(squares_x=squares[0], squares_y=squares[1], square_mm=54.0, marker_mm=40.5,
+                                 dictionary="DICT_4X4_1000")
+    assert target_corners(board.corner_count) == need
+    session = calibcoach.Assistant(board=board, image_size=(1280, 720), model="pinhole").session
+    session.camera = CameraModel.from_fov((1280, 720), 70.0)
+    session._candidates_camera = None
+    session._refresh_lens()
+    assert len(session._candidates) > 100
+    assert min(c.view.corner_count for c in session._candidates) >= need
+    assert session.selector.coverage.reachable.all()
+    session._rank()
+    assert session.guide.best is not None  # the first target: the board facing the camera at the centre
+
+
 # --- the closed loop ----------------------------------------------------------------------------
 
 
