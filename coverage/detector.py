@@ -230,12 +230,21 @@ def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
 def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardError | None:
     """Explain why `spec` finds no corners in frames that may show some other board.
 
-    Tries, on a few sample frames: other dictionaries, swapped width/height, legacy pattern,
-    inverted polarity, and marker ids beyond the board's range. Returns an error whose message says
-    what was seen and what to pass instead, or None when nothing board-like is visible at all.
+    Tries, on a few sample frames: a mirrored image, other dictionaries, swapped width/height, legacy
+    pattern, inverted polarity, and marker ids beyond the board's range. Returns an error whose message
+    says what was seen and what to pass instead, or None when nothing board-like is visible at all.
     """
     if not greys:
         return None
+    # First, as its markers mislead every other test: a mirrored marker reads as some other code, or
+    # none (caliscope's cam_1, a webcam in mirror mode: a 4x5 board's ids 0-9 read as ids up to 871).
+    flipped = CharucoBoardDetector(spec)
+    if any(flipped.detect(cv2.flip(grey, 1)).corner_count >= 6 for grey in greys):
+        return BoardError(
+            f"the images are mirrored left to right: the board ({spec.describe()}) reads only in the flipped image "
+            "(a webcam's mirror or selfie mode, or a flipped recording); turn the camera's mirroring (horizontal "
+            "flip) off, or flip the frames back (ffmpeg -vf hflip), and capture or run again"
+        )
     own = dictionary_id(spec.dictionary)
     counts: dict[str, int] = {}
     own_ids: set[int] = set()

@@ -102,6 +102,17 @@ def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path,
     assert K.shape == (3, 3) and 700 < K[0, 0] < 1100
 
 
+def test_a_mirrored_webcam_video_is_named_as_mirrored(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """caliscope's cam_1 is mirrored left to right (its README): the board's ids read as others up to 871, which
+    used to be blamed on the square count."""
+    root = shared_data / "caliscope_webcam_charuco_4x5"
+    code, _, err = run_cli(capsys, "calibrate", str(root / "video" / "cam_1.mp4"), "--board", str(root / "charuco.toml"),
+                           "--out", str(tmp_path / "o"), "--quiet", "--no-viewer")
+    assert code == 2
+    assert_one_line_error(err, "the images are mirrored left to right", "ffmpeg -vf hflip")
+    assert "--squares" not in err
+
+
 def test_machine_vision_photos_match_the_authors_intrinsics(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "o"
     code, _, _ = run_cli(capsys, "calibrate", str(shared_data / "pycamset_charuco_3cam" / "2"), "--out", str(out), "--quiet",

@@ -102,6 +102,18 @@ def test_wrong_board_gets_a_one_line_fix(wrong: BoardSpec, advice: str) -> None:
     assert "\n" not in str(error)
 
 
+@pytest.mark.parametrize("spec", [BoardSpec(), BoardSpec(squares_x=4, squares_y=5, dictionary="DICT_4X4_1000")])
+def test_a_mirrored_image_is_named_as_such(spec: BoardSpec) -> None:
+    """A mirrored marker reads as another code or none, which would send the person after the wrong fix
+    (a 4x5 board's dictionary is large enough that its mirrored markers read as ids far beyond the board's)."""
+    mirrored = cv2.flip(board_photo(spec), 1)
+    assert CharucoBoardDetector(spec).detect(mirrored).corner_count < 6
+    error = diagnose_board_mismatch(spec, [mirrored])
+    assert error is not None and str(error).startswith("the images are mirrored left to right")
+    assert "ffmpeg -vf hflip" in str(error) and "\n" not in str(error)
+    assert "mirrored" not in str(diagnose_board_mismatch(BoardSpec(dictionary="DICT_4X4_100"), [board_photo(BoardSpec())]))
+
+
 def test_no_markers_at_all_gives_no_diagnosis() -> None:
     assert diagnose_board_mismatch(BoardSpec(), [np.full((720, 1280), 128, np.uint8)]) is None
 
