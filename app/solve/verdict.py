@@ -121,9 +121,9 @@ def judge(
     trusted = True
     trust_limit = max(ERROR_TRUST_PX * max(resolution_scale(image_size), 0.5), noise_px)
     coverage_short = coverage_completeness < MIN_COVERAGE_TO_TRUST
+    regions_only = not coverage_missing.get("tilts") and not coverage_missing.get("distances")
     # only image regions missing, and the model's extrapolation into them within the trust bound
-    extrapolated = (coverage_short and not coverage_missing.get("tilts") and not coverage_missing.get("distances")
-                    and reachable_error_px is not None and reachable_error_px <= trust_limit)
+    extrapolated = coverage_short and regions_only and reachable_error_px is not None and reachable_error_px <= trust_limit
     if extrapolated:
         reasons.append(
             f"Coverage is only {coverage_completeness * 100:.0f}% (below {MIN_COVERAGE_TO_TRUST * 100:.0f}%): "
@@ -134,7 +134,7 @@ def judge(
     elif coverage_short:
         trusted = False
         reasons.append(f"Coverage is only {coverage_completeness * 100:.0f}% (needs {MIN_COVERAGE_TO_TRUST * 100:.0f}%): " + _missing_words(coverage_missing))
-        if reachable_error_px is not None and not coverage_missing.get("tilts") and not coverage_missing.get("distances"):
+        if regions_only and reachable_error_px is not None:
             reasons.append(f"Only image regions are missing, but the model's extrapolation into them is not pinned down: "
                            f"E over the whole image a board can be seen in is {reachable_error_px:.3f} px, "
                            f"above the {trust_limit:.3f} px trust bound.")
