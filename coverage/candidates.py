@@ -122,6 +122,11 @@ def target_corners(board_corners: int) -> int:
     return max(MIN_FRAME_CORNERS, min(MIN_TARGET_CORNERS, board_corners // 4))
 
 
+def cell_index(px: np.ndarray, extent_px: float, cells: int) -> np.ndarray:
+    """The region cell (0 .. cells-1) each pixel coordinate along one image axis falls in; outside the image, the nearest."""
+    return np.clip((np.asarray(px, np.float64) / extent_px * cells).astype(int), 0, cells - 1)
+
+
 def region_cell_counts(point_sets: Sequence[np.ndarray], image_size: tuple[int, int],
                        grid_shape: tuple[int, int]) -> np.ndarray:
     """(K, rows, cols) int: how many of each of K sets of (N, 2) pixels fall in each region cell,
@@ -132,8 +137,7 @@ def region_cell_counts(point_sets: Sequence[np.ndarray], image_size: tuple[int, 
         return np.zeros((0, rows, cols), np.intp)
     px = np.concatenate([np.asarray(p, np.float64).reshape(-1, 2) for p in point_sets])
     owner = np.repeat(np.arange(len(point_sets)), [np.asarray(p).reshape(-1, 2).shape[0] for p in point_sets])
-    r = np.clip((px[:, 1] / h * rows).astype(int), 0, rows - 1)
-    c = np.clip((px[:, 0] / w * cols).astype(int), 0, cols - 1)
+    r, c = cell_index(px[:, 1], h, rows), cell_index(px[:, 0], w, cols)
     counts = np.bincount(owner * rows * cols + r * cols + c, minlength=len(point_sets) * rows * cols)
     return counts.reshape(len(point_sets), rows, cols)
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.candidates import Ranges, region_cell_counts
+from calibcoach.coverage.candidates import Ranges, cell_index, region_cell_counts
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.pose import BoardPose
 
@@ -200,9 +200,7 @@ class CoverageMap:
     def reachable_at(self, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
         """(len(y_px), len(x_px)) bool: which points of a pixel grid lie in a region cell a board can be seen in."""
         w, h = self.image_size
-        r = np.clip((np.asarray(y_px, np.float64) / h * self.rows).astype(int), 0, self.rows - 1)
-        c = np.clip((np.asarray(x_px, np.float64) / w * self.cols).astype(int), 0, self.cols - 1)
-        return self.reachable[np.ix_(r, c)]
+        return self.reachable[np.ix_(cell_index(y_px, h, self.rows), cell_index(x_px, w, self.cols))]
 
     def missing_regions(self) -> list[tuple[int, int, float]]:
         """(row, col, fill) of region cells below their requirement, the most important first."""
