@@ -71,8 +71,9 @@ def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: 
     refined = None
     if refine:
         grey = frame.grey()
-        blur = edges.blur_px if edges is not None else blur_px if blur_px is not None else \
-            edge_blur(grey, corners, detection.object_points_m).blur_px
+        blur = edges.blur_px if edges is not None else blur_px
+        if blur is None:
+            blur = edge_blur(grey, corners, detection.object_points_m).blur_px
         refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
                                           board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
