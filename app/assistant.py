@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from calibcoach.app.board_watch import BoardWatch
 from calibcoach.app.focus_watch import RELOCK_EVENT, FocusEvent, FocusWatch
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionResult, SessionSettings
 from calibcoach.app.solve.result import Verdict
@@ -116,6 +117,7 @@ class Assistant:
         self._count = 0
         self.last_outcome: FrameOutcome | None = None
         self.watch = FocusWatch(locked_controls)
+        self.board_watch = BoardWatch()  # says when the frames show some other board (mirrored, other size ...)
         self._locked = dict(locked_controls or {})
         self._recorded_events = list(focus_events)  # in the order they happened
 
@@ -190,6 +192,9 @@ class Assistant:
         event = self.watch.check(frame, outcome.blur_px, self.session.selector.accepted_blurs)
         if event is not None:
             self._stop_accepting(event)
+        board_hint = self.board_watch.see(frame, detection, self.session.board)
+        if board_hint:  # no frame has shown the board: nothing the session could say about holding it applies
+            outcome = replace(outcome, guidance=replace(outcome.guidance, hint=board_hint))
         self.last_outcome = outcome
         d = outcome.decision
         return Step(outcome.frame_index, d.accepted, d.reason, d.detail, outcome.guidance, self._progress(), outcome, frame)

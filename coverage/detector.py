@@ -227,12 +227,18 @@ def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
     return np.median(moves, axis=0)
 
 
-def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardError | None:
+# OpenCV names some dictionaries twice (DICT_APRILTAG_16H5 and _16h5): each is searched once, under its first name.
+_DISTINCT_DICTIONARIES = list({getattr(cv2.aruco, name): name for name in reversed(DICTIONARY_NAMES)}.values())[::-1]
+
+
+def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specific_only: bool = False) -> BoardError | None:
     """Explain why `spec` finds no corners in frames that may show some other board.
 
     Tries, on a few sample frames: a mirrored image, other dictionaries, swapped width/height, legacy
     pattern, inverted polarity, and marker ids beyond the board's range. Returns an error whose message
     says what was seen and what to pass instead, or None when nothing board-like is visible at all.
+    `specific_only`: None also where only the board's own markers were seen and none of those tests
+    names a cause (the right board too far or too soft for corners looks the same).
     """
     if not greys:
         return None
@@ -248,7 +254,7 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardEr
     own = dictionary_id(spec.dictionary)
     counts: dict[str, int] = {}
     own_ids: set[int] = set()
-    for name in DICTIONARY_NAMES:
+    for name in _DISTINCT_DICTIONARIES:
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), _aruco_parameters(inverted=True))
         total = 0
         for grey in greys:
@@ -261,7 +267,8 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardEr
     seen = max(counts, key=lambda n: counts[n])
     if counts[seen] == 0:
         return None
-    if counts.get(spec.dictionary, 0) < 0.5 * counts[seen] and seen != spec.dictionary:
+    own_count = sum(n for name, n in counts.items() if getattr(cv2.aruco, name) == own)  # under whichever alias
+    if own_count < 0.5 * counts[seen] and getattr(cv2.aruco, seen) != own:
         # Dictionaries share their first codes (4X4_50 is a prefix of 4X4_1000), so name the family seen.
         return BoardError(
             f"the images show ArUco markers of {seen} ({counts[seen]} found), not {spec.dictionary}; "
@@ -286,6 +293,8 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray]) -> BoardEr
                 f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; "
                 f"it matches with {advice}"
             )
+    if specific_only:
+        return None
     return BoardError(
         f"markers of {spec.dictionary} are visible (ids {sorted(own_ids)[:12]}) but they never form the corners of a "
         f"{spec.squares_x}x{spec.squares_y} board; check --squares, --square-mm/--marker-mm and the dictionary"

@@ -7,20 +7,11 @@ import re
 import cv2
 import numpy as np
 import pytest
+from _boards import board_photo
 
 from calibcoach.coverage.board import BoardSpec, dictionary_id
 from calibcoach.coverage.detector import CharucoBoardDetector, diagnose_board_mismatch
 from calibcoach.drivers.errors import BoardError
-
-
-def board_photo(spec: BoardSpec, *, legacy: bool = False, tilt: float = 0.12) -> np.ndarray:
-    """The board printed by OpenCV, put in a 1280x720 frame under a mild perspective."""
-    flat = spec.cv_board(legacy=legacy).generateImage((440, 605), marginSize=20)
-    h, w = flat.shape
-    src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
-    dst = np.float32([[400, 60], [400 + w * (1 - tilt), 90], [400 + w * (1 - tilt), 60 + h - 30], [400, 60 + h]])
-    H = cv2.getPerspectiveTransform(src, dst)
-    return cv2.warpPerspective(flat, H, (1280, 720), borderValue=128)
 
 
 def test_default_board_is_the_methods_board() -> None:

@@ -1,0 +1,78 @@
+"""Noticing, while the capture runs, that the camera shows some other board than the one configured.
+
+A webcam in mirror mode, a 5x7 board printed where the default 8x11 was configured, the wrong
+dictionary: every frame then says "no board", and the capture's end explains why
+(`diagnose_board_mismatch`, run when not one frame showed the board). Live, the person would
+stand there until they gave up. So `BoardWatch` keeps a few of the frames that showed no usable
+board and, once enough of them came in a row, asks the same diagnosis; its answer becomes the
+guidance's hint until a frame shows the configured board.
+
+Every decision counts frames, never seconds, so a recording replays the hint at the frame the live
+session showed it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
+from calibcoach.drivers.base import Frame
+
+# Frames in a row without a usable board between diagnoses: 1.5 s at 30 fps. A person bringing the
+# right board into view is past it within a few frames of it entering, so it is not diagnosed on
+# the way; someone who sees "no board" for longer has started to wonder. A diagnosis costs 0.25 s
+# on three 720p frames with nothing board-like in them (22 dictionaries searched; ~1 s with a
+# board's markers in all three, and then it names the cause and stops), so a camera pointed at a
+# scene without a board spends ~15% of its time here -- time it has no other use for -- and the
+# hint comes within 1.5 s of the samples first showing the board, whenever that is.
+CHECK_EVERY = 45
+# Kept frames: among every 8th frame since the last diagnosis, the three with the most of the
+# board's own markers (a mirrored or other-dictionary board shows none: then the latest three).
+SAMPLES = 3
+SAMPLE_EVERY = 8
+# The right board, far away or soft, can show a few of its markers and no corners; with this many
+# of them in one frame it would have given corners (each pair of neighbours gives one), so only
+# then is "visible but never forming the board's corners" said.
+MARKERS_FOR_A_BOARD = 8
+_MIN_CORNERS = 6
+
+
+class BoardWatch:
+    """Feed it every decided frame (`see`); `hint` is what to tell the person about the board, or ""."""
+
+    def __init__(self) -> None:
+        self.hint = ""
+        self.checks = 0  # diagnoses run (each is a few hundred ms of detection)
+        self._found = False  # a frame showed the configured board: it is the right one, nothing to watch
+        self._streak = 0  # frames in a row without a usable board
+        self._samples: list[tuple[int, int, np.ndarray]] = []  # (own markers, frame index, grey) since the last diagnosis
+
+    def see(self, frame: Frame, detection: Detection, spec: BoardSpec) -> str:
+        """Take one decided frame and its detection with `spec` (the board as configured, its print's
+        variant settled where known); returns the current hint ("" when there is nothing to say)."""
+        if self._found:
+            return ""
+        if detection.corner_count >= _MIN_CORNERS:
+            self._found, self.hint, self._samples = True, "", []
+            return ""
+        if self.hint:
+            return self.hint  # said: it holds until the board is seen
+        self._streak += 1
+        if self._streak % SAMPLE_EVERY == 1:
+            self._keep(frame.index, frame.grey(), int(detection.marker_ids.size))
+        if self._streak % CHECK_EVERY == 0:
+            self.checks += 1
+            most_markers = max(markers for markers, _i, _g in self._samples)
+            error = diagnose_board_mismatch(spec, [g for _m, _i, g in self._samples],
+                                            specific_only=most_markers < MARKERS_FOR_A_BOARD)
+            self._samples = []  # the next diagnosis looks at frames it has not seen
+            if error is not None:
+                self.hint = f"No corners of the configured board yet: {error}."
+        return self.hint
+
+    def _keep(self, frame_index: int, grey: np.ndarray, markers: int) -> None:
+        self._samples.append((markers, frame_index, grey.copy()))
+        if len(self._samples) > SAMPLES:
+            # the fewest markers go first, and of those the oldest
+            self._samples.remove(min(self._samples, key=lambda s: (s[0], s[1])))

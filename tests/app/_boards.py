@@ -1,0 +1,18 @@
+"""A printed board in a camera frame, for tests of detection and of what is said about boards."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.board import BoardSpec
+
+
+def board_photo(spec: BoardSpec, *, legacy: bool = False, tilt: float = 0.12) -> np.ndarray:
+    """The board printed by OpenCV, put in a 1280x720 frame under a mild perspective."""
+    flat = spec.cv_board(legacy=legacy).generateImage((440, 605), marginSize=20)
+    h, w = flat.shape
+    src = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    dst = np.float32([[400, 60], [400 + w * (1 - tilt), 90], [400 + w * (1 - tilt), 60 + h - 30], [400, 60 + h]])
+    H = cv2.getPerspectiveTransform(src, dst)
+    return cv2.warpPerspective(flat, H, (1280, 720), borderValue=128)

@@ -1,0 +1,89 @@
+"""The live hint for a camera showing some other board than the one configured (app/board_watch.py):
+real detection on rendered boards, the Assistant's steps, and the live command on a mirrored folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _boards import board_photo
+
+from calibcoach.app.assistant import Assistant
+from calibcoach.app.board_watch import CHECK_EVERY
+from calibcoach.app.cli import main
+from calibcoach.coverage.board import BoardSpec
+
+
+def steps(images: list[np.ndarray]) -> tuple[Assistant, list[str]]:
+    """Feed `images` at 30 fps (each with its own sensor noise, as a camera's frames); the hint of each decided frame."""
+    assistant = Assistant(BoardSpec(), (1280, 720))
+    hints = []
+    for i, image in enumerate(images):
+        noise = np.random.default_rng(i).integers(0, 3, image.shape, dtype=np.uint8)
+        step = assistant.feed(cv2.add(image, noise), i * 33_333_333)
+        if step.frame_index >= 0:
+            hints.append(step.guidance.hint)
+    return assistant, hints
+
+
+def test_a_mirrored_camera_is_named_once_enough_frames_came_without_the_board() -> None:
+    mirrored = cv2.flip(board_photo(BoardSpec()), 1)
+    assistant, hints = steps([mirrored] * (CHECK_EVERY + 5))
+    assert hints[: CHECK_EVERY - 1] == [""] * (CHECK_EVERY - 1)  # not while a board may still be coming into view
+    assert all("mirrored left to right" in h and "ffmpeg -vf hflip" in h for h in hints[CHECK_EVERY - 1:])
+    assert assistant.board_watch.checks == 1  # said once, then kept: no second diagnosis
+
+
+def test_a_smaller_print_than_configured_is_said_to_be_some_other_board() -> None:
+    _assistant, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + 1))
+    assert "never form the corners of a 8x11 board" in hints[-1] and "--squares" in hints[-1]
+
+
+def test_the_right_board_far_or_partial_is_not_called_another_board() -> None:
+    """A single marker of the right board (the rest out of view) gives no corners: no cause to name."""
+    photo = board_photo(BoardSpec())
+    partial = np.full_like(photo, 128)
+    partial[60:160, 400:520] = photo[60:160, 400:520]  # the top-left square and one marker
+    assistant, hints = steps([partial] * (CHECK_EVERY + 1))
+    assert assistant.board_watch.checks == 1 and hints[-1] == ""
+
+
+def test_a_mirrored_board_shown_late_is_named_at_the_next_diagnosis() -> None:
+    """The camera pointed at an empty scene first: nothing board-like, nothing said; the board comes
+    later, and the next diagnosis looks at the frames since the last."""
+    empty = np.full((720, 1280), 128, np.uint8)
+    mirrored = cv2.flip(board_photo(BoardSpec()), 1)
+    assistant, hints = steps([empty] * (2 * CHECK_EVERY + 10) + [mirrored] * CHECK_EVERY)
+    assert assistant.board_watch.checks == 3
+    assert set(hints[: 3 * CHECK_EVERY - 1]) == {""} and "mirrored" in hints[3 * CHECK_EVERY - 1] and "mirrored" in hints[-1]
+
+
+def test_nothing_is_said_when_the_board_turns_up_and_watching_stops_for_good() -> None:
+    empty = np.full((720, 1280), 128, np.uint8)
+    right = board_photo(BoardSpec())
+    assistant, hints = steps([empty] * (CHECK_EVERY + 1) + [right] * 3 + [empty] * (2 * CHECK_EVERY + 2))
+    assert set(hints) == {""}
+    assert assistant.board_watch.checks == 1  # the empty scene was diagnosed once (nothing board-like); none after the board
+
+
+def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """A webcam in mirror mode, live: the status says so on a line of its own long before the capture ends."""
+    folder = tmp_path / "mirrored"
+    folder.mkdir()
+    for path in sorted((recordings_dir / "demo_webcam720_careful" / "frames").glob("*.png")):  # 120, the board in and out
+        cv2.imwrite(str(folder / path.name), cv2.flip(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), 1))
+    steps_path = tmp_path / "steps.jsonl"
+    code = main(["live", "--source", str(folder), "--out", str(tmp_path / "o"), "--no-viewer", "--speed", "0.5",
+                 "--guidance-jsonl", str(steps_path)])
+    assert code == 2  # and the capture's end says it again, as an error
+    lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
+    hinted = [i for i, s in enumerate(lines) if "mirrored left to right" in s["guidance"]["hint"]]
+    # from a diagnosis on (the first, or the next if the first one's samples missed the board: a loaded
+    # machine drops other frames) to the end
+    assert hinted and hinted == list(range(hinted[0], len(lines))) and hinted[0] % CHECK_EVERY == CHECK_EVERY - 1
+    said = [line for line in capsys.readouterr().err.splitlines() if "mirrored left to right" in line]
+    assert said[0].startswith("calibcoach: No corners of the configured board yet: the images are mirrored")
