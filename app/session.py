@@ -25,20 +25,20 @@ from calibcoach.app.session_finish import (
 )
 from calibcoach.app.session_types import FrameOutcome, Progress, SessionSettings, lens_guess
 from calibcoach.app.session_types import SessionResult as SessionResult  # re-exported: what finish() returns
-from calibcoach.app.solve.calibrate import poses_for_views, reprojection_residuals, solve
+from calibcoach.app.solve.calibrate import poses_for_views, reprojection_residuals
 from calibcoach.app.solve.information import (
     covariance_from_information,
     intrinsic_names,
     marginal_information,
     view_jacobian,
 )
-from calibcoach.app.solve.model_choice import pinhole_sees_narrow_lens
 from calibcoach.app.solve.next_view import RankedPose, error_cut, rank_poses
 from calibcoach.app.solve.residual_structure import residual_patterns
 from calibcoach.app.solve.result import UncertaintyMap, View
 from calibcoach.app.solve.robust import noise_sigma_px
 from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px
+from calibcoach.app.solve.working_model import live_solve
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.candidates import (
     CandidatePose,
@@ -85,7 +85,6 @@ _SAMPLE_FRAMES_FOR_DIAGNOSIS = 6
 # distortion, moved 4-47 px from solve to solve), 0.38 s a time for a 20 x 20 board.
 _LENS_MOVED_SHARE = 0.01
 _LENS_MOVED_MIN_PX = 2.0
-_FISHEYE_FITS_BETTER = 0.7  # the reduced fisheye's RMS below this share of the reduced pinhole's: a fisheye
 
 # Judged frames whose edge blur a replay's holds may borrow: a hold is settled as soon as the judged
 # frame after it is, so only the last few are ever asked for; a live session runs for hours.
@@ -326,38 +325,14 @@ class CalibrationSession(SessionFinish):
     def _incremental_solve(self) -> tuple[np.ndarray, np.ndarray] | None:
         if len(self.views) < MIN_VIEWS_FOR_INCREMENTAL_SOLVE:
             return None
-        reduced = len(self.views) < FULL_MODEL_VIEWS
         try:
-            raw = solve(self.views, self.image_size, self.working_model, reduced=reduced,
-                        initial=self.camera if self.camera.model == self.working_model else None)
+            raw, self.working_model = live_solve(self.views, self.image_size, self.working_model,
+                                                 reduced=len(self.views) < FULL_MODEL_VIEWS, may_switch=self.settings.model == "auto",
+                                                 initial=self.camera)
         except CalibrationError:
             return None
-        if self.settings.model == "auto" and self.working_model == "pinhole":
-            # A pinhole model cannot follow a fisheye even for guidance, and its wrong focal length
-            # sends the person to ranges where the board is too small to read. Either its field of
-            # view says so, or the reduced fisheye fits the same frames clearly better (on a 150 deg
-            # lens the reduced pinhole was seen to miss by 50 px of expected error and stall the capture).
-            # The check's fisheye solve is skipped where the pinhole already fits a narrow lens (the
-            # model choice's rule): it costs 5-8x the reduced pinhole (~40 ms at 6-11 views, OpenCV
-            # re-poses every view each iteration), and on such a lens it came out no better.
-            hfov = raw.camera.field_of_view_deg()[0]
-            fisheye = None
-            # decided while the data is thin; later solves start from the working model
-            if reduced and not pinhole_sees_narrow_lens(raw.rms_px, hfov):
-                try:
-                    fisheye = solve(self.views, self.image_size, "fisheye", reduced=True)
-                except CalibrationError:
-                    pass
-            wide = hfov > 110.0
-            if wide or (fisheye is not None and fisheye.rms_px < _FISHEYE_FITS_BETTER * raw.rms_px):
-                self.working_model = "fisheye"
-                if fisheye is not None:  # the check's solve is this very solve (same views, reduced)
-                    raw = fisheye
-                else:
-                    try:
-                        raw = solve(self.views, self.image_size, "fisheye", reduced=reduced)
-                    except CalibrationError:
-                        return None
+        if raw is None:
+            return None
         self.camera = raw.camera
         n_points = sum(v.ids.size for v in self.views)
         self.noise_px = noise_sigma_px(raw.rms_px, n_points=n_points, n_params=len(intrinsic_names(raw.camera.model)),

@@ -144,7 +144,7 @@ def test_the_working_model_check_solves_a_fisheye_only_where_the_pinhole_does_no
         recordings_dir: Path, monkeypatch: pytest.MonkeyPatch, recording: str, working_model: str, fisheye_checks: int) -> None:
     # While the data is thin each accept re-decides the working model; its fisheye solve (5-8x a
     # reduced pinhole's cost) is skipped on a lens the pinhole fits within a pixel at under 80 deg.
-    import calibcoach.app.session as session_module
+    import calibcoach.app.solve.working_model as session_module
 
     real_solve = session_module.solve
     reduced_solves: list[tuple[str, float, float]] = []
