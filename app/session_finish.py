@@ -338,8 +338,8 @@ class SessionFinish:
             if mismatch is not None:
                 return mismatch  # type: ignore[return-value]
             return CalibrationError(
-                f"no board corners were found in any of the {self.frames_seen} frames, and no ArUco markers of any "
-                f"dictionary either; check that the images show the board ({self.board.describe()}), in focus and lit "
+                f"no board corners were found in any of the {self.frames_seen} frames, and at most a stray ArUco marker "
+                f"or two of any dictionary; check that the images show the board ({self.board.describe()}), in focus and lit "
                 "(a plain chessboard has no markers: print a ChArUco board with `calibcoach board --out board.pdf`)"
             )
         return CalibrationError(

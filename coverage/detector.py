@@ -227,6 +227,10 @@ def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
     return np.median(moves, axis=0)
 
 
+# A board in view shows several markers at once; a textured scene without one was read as 1-2 markers
+# of some dictionary in a frame (ARUCO_ORIGINAL, 4X4_1000 on renders' backgrounds): below this many in
+# one frame, markers are not taken for a board of any dictionary.
+BOARD_LIKE_MARKERS = 4
 # OpenCV names some dictionaries twice (DICT_APRILTAG_16H5 and _16h5): each is searched once, under its first name.
 _DISTINCT_DICTIONARIES = list({getattr(cv2.aruco, name): name for name in reversed(DICTIONARY_NAMES)}.values())[::-1]
 
@@ -252,21 +256,23 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
             "flip) off, or flip the frames back (ffmpeg -vf hflip), and capture or run again"
         )
     own = dictionary_id(spec.dictionary)
-    counts: dict[str, int] = {}
+    counts: dict[str, int] = {}  # markers found in all the frames, per dictionary
+    most: dict[str, int] = {}  # ... and in the richest frame: what tells a board from stray look-alikes
     own_ids: set[int] = set()
     for name in _DISTINCT_DICTIONARIES:
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), _aruco_parameters(inverted=True))
-        total = 0
+        found = []
         for grey in greys:
             _corners, ids, _rej = detector.detectMarkers(grey)
-            if ids is not None:
-                total += len(ids)
-                if getattr(cv2.aruco, name) == own:
-                    own_ids.update(int(i) for i in np.asarray(ids).reshape(-1))
-        counts[name] = total
-    seen = max(counts, key=lambda n: counts[n])
-    if counts[seen] == 0:
-        return None
+            ids = np.zeros(0, np.int32) if ids is None else np.asarray(ids).reshape(-1)
+            found.append(ids.size)
+            if getattr(cv2.aruco, name) == own:
+                own_ids.update(int(i) for i in ids)
+        counts[name], most[name] = sum(found), max(found)
+    boards = [name for name in counts if most[name] >= BOARD_LIKE_MARKERS]
+    if not boards:
+        return None  # nothing board-like: no markers, or a stray one or two a textured scene reads as markers
+    seen = max(boards, key=lambda n: counts[n])
     own_count = sum(n for name, n in counts.items() if getattr(cv2.aruco, name) == own)  # under whichever alias
     if own_count < 0.5 * counts[seen] and getattr(cv2.aruco, seen) != own:
         # Dictionaries share their first codes (4X4_50 is a prefix of 4X4_1000), so name the family seen.

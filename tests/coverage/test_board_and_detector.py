@@ -10,7 +10,7 @@ import pytest
 from _boards import board_photo
 
 from calibcoach.coverage.board import BoardSpec, dictionary_id
-from calibcoach.coverage.detector import CharucoBoardDetector, diagnose_board_mismatch
+from calibcoach.coverage.detector import BOARD_LIKE_MARKERS, CharucoBoardDetector, diagnose_board_mismatch
 from calibcoach.drivers.errors import BoardError
 
 
@@ -107,6 +107,23 @@ def test_a_mirrored_image_is_named_as_such(spec: BoardSpec) -> None:
 
 def test_no_markers_at_all_gives_no_diagnosis() -> None:
     assert diagnose_board_mismatch(BoardSpec(), [np.full((720, 1280), 128, np.uint8)]) is None
+
+
+@pytest.mark.parametrize("markers", [1, BOARD_LIKE_MARKERS - 1, BOARD_LIKE_MARKERS])
+def test_a_stray_marker_of_another_dictionary_is_not_taken_for_a_board(markers: int) -> None:
+    """A textured scene reads as a marker or two of some dictionary (ARUCO_ORIGINAL, 4X4_1000 on renders'
+    backgrounds): the person must not be told to pass that dictionary; a few at once are a board."""
+    scene = np.full((720, 1280), 128, np.uint8)
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_ARUCO_ORIGINAL)
+    for k in range(markers):
+        x, y = 100 + 250 * k, 200
+        scene[y - 20:y + 140, x - 20:x + 140] = 255
+        scene[y:y + 120, x:x + 120] = cv2.aruco.generateImageMarker(dictionary, 7 + k, 120)
+    error = diagnose_board_mismatch(BoardSpec(), [scene])
+    if markers < BOARD_LIKE_MARKERS:
+        assert error is None
+    else:
+        assert error is not None and "pass --dictionary DICT_ARUCO_ORIGINAL" in str(error)
 
 
 def test_plain_print_of_an_even_row_board_is_not_called_inverted_or_legacy() -> None:
