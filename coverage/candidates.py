@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_views
-from calibcoach.drivers.geometry import pose_matrix, poses_facing_pixel
+from calibcoach.drivers.geometry import align_z_to, pose_matrix, poses_facing_pixel
 from calibcoach.drivers.lens import CameraModel
 
 POSITIONS_X = (0.1, 0.3, 0.5, 0.7, 0.9)  # board centre, share of the image width
@@ -97,9 +97,10 @@ def candidate_poses(camera: CameraModel, board: BoardGeometry, ranges: Ranges) -
     placed = []  # (key, centre, range, name, tilt_x, tilt_y, rvec, tvec) of the poses that keep clear of the lens
     for k, (centre, ray) in enumerate(zip(centres, rays, strict=True)):
         ix, iy = k % len(POSITIONS_X), k // len(POSITIONS_X)
+        aligned = align_z_to(ray)  # one line of sight for the nine tilts
         for it, (tx, ty) in enumerate(TILTS_DEG):
             # one orientation for the three ranges: a rebuild of the 720p lens's grid 64 -> 51 ms, same poses
-            rvec, tvecs = poses_facing_pixel(ray, board.centre_m, distances, tilt_x_deg=tx, tilt_y_deg=ty)
+            rvec, tvecs = poses_facing_pixel(ray, board.centre_m, distances, tilt_x_deg=tx, tilt_y_deg=ty, aligned=aligned)
             outline_turned = board.outline_m @ pose_matrix(rvec).T
             for name, rng, tvec in zip(RANGE_NAMES, distances, tvecs, strict=True):
                 if np.min((outline_turned + tvec)[:, 2]) < MIN_RANGE_M:

@@ -7,6 +7,7 @@ piece of code: a test that says "the careful path reaches 45 deg" and a coverage
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import cv2
@@ -56,14 +57,27 @@ def board_centre_m(squares_x: int, squares_y: int, square_m: float) -> np.ndarra
     return np.array([squares_x * square_m / 2.0, squares_y * square_m / 2.0, 0.0])
 
 
-def facing_orientation(ray: np.ndarray, tilt_x_deg: float, tilt_y_deg: float, roll_deg: float) -> np.ndarray:
+def facing_orientation(ray: np.ndarray, tilt_x_deg: float, tilt_y_deg: float, roll_deg: float, *,
+                       aligned: np.ndarray | None = None) -> np.ndarray:
     """(3, 3) R_cam_board of a board facing the line of sight `ray` (3,), then tilted and rolled.
 
     Rx(-tilt_x) tips the top edge away and Ry(-tilt_y) the right edge (docs/conventions.md); roll
     turns the board in its own plane first. `tilt_against_sight_deg` measures the same angles back.
+    `aligned`: `align_z_to(ray)` where the caller has it (the candidate grid turns one ray nine ways).
     """
+    tip_x, tip_y, turn = _turns(float(tilt_x_deg), float(tilt_y_deg), float(roll_deg))
+    return (align_z_to(ray) if aligned is None else aligned) @ tip_x @ tip_y @ turn
+
+
+@functools.lru_cache(maxsize=256)
+def _turns(tilt_x_deg: float, tilt_y_deg: float, roll_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three rotations of `facing_orientation`, kept (read-only): the candidate grid asks for the same
+    nine tilts at every position after every lens change."""
     tx, ty, roll = np.radians([tilt_x_deg, tilt_y_deg, roll_deg])
-    return align_z_to(ray) @ pose_matrix([-tx, 0.0, 0.0]) @ pose_matrix([0.0, -ty, 0.0]) @ pose_matrix([0.0, 0.0, roll])
+    turns = pose_matrix([-tx, 0.0, 0.0]), pose_matrix([0.0, -ty, 0.0]), pose_matrix([0.0, 0.0, roll])
+    for matrix in turns:
+        matrix.flags.writeable = False
+    return turns
 
 
 def pose_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distance_m: float, *, tilt_x_deg: float = 0.0,
@@ -79,13 +93,14 @@ def pose_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distance_m: f
 
 def poses_facing_pixel(ray: np.ndarray, centre_board_m: np.ndarray, distances_m: Sequence[float], *,
                        tilt_x_deg: float = 0.0, tilt_y_deg: float = 0.0,
-                       roll_deg: float = 0.0) -> tuple[np.ndarray, list[np.ndarray]]:
+                       roll_deg: float = 0.0, aligned: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
     """`pose_facing_pixel` at several distances along one ray: (rvec (3,), one tvec (3,) per distance).
 
     The orientation does not depend on the distance, so it is built once (the candidate grid asks
     for three ranges of every position and tilt; each tvec is the same number as one by one).
+    `aligned`: as for `facing_orientation`.
     """
-    R = facing_orientation(ray, tilt_x_deg, tilt_y_deg, roll_deg)
+    R = facing_orientation(ray, tilt_x_deg, tilt_y_deg, roll_deg, aligned=aligned)
     direction = np.asarray(ray, np.float64)
     norm = np.linalg.norm(ray)
     offset = R @ np.asarray(centre_board_m, np.float64)
