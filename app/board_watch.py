@@ -13,20 +13,26 @@ session showed it.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.drivers.base import Frame
 
-# Frames in a row without a usable board between diagnoses: 1.5 s at 30 fps. A person bringing the
-# right board into view is past it within a few frames of it entering, so it is not diagnosed on
-# the way; someone who sees "no board" for longer has started to wonder. A diagnosis costs 0.25 s
-# on three 720p frames with nothing board-like in them (22 dictionaries searched; ~1 s with a
-# board's markers in all three, and then it names the cause and stops), so a camera pointed at a
-# scene without a board spends ~15% of its time here -- time it has no other use for -- and the
-# hint comes within 1.5 s of the samples first showing the board, whenever that is.
+# Frames in a row without a usable board before the first diagnosis: 1.5 s at 30 fps. A person
+# bringing the right board into view is past it within a few frames of it entering, so it is not
+# diagnosed on the way; someone who sees "no board" for longer has started to wonder. A diagnosis
+# costs ~0.25 s on three 720p frames with nothing board-like in them (22 dictionaries searched;
+# ~1 s with a board's markers in all three, and then it names the cause and stops). One that found
+# nothing is asked again after twice as many frames, then every `CHECK_EVERY * MAX_BACKOFF` (6 s
+# at 30 fps): a camera left on a scene without a board spends ~4% of its time here, and a board
+# shown late is named within 6 s.
 CHECK_EVERY = 45
+MAX_BACKOFF = 4
+# Samples wider than this are halved (and halved again) first: a 4K frame's markers stay many pixels
+# wide, and the diagnosis costs what a 1080p one does (~4x less than at 4K).
+MAX_SAMPLE_WIDTH = 1920
 # Kept frames: among every 8th frame since the last diagnosis, the three with the most of the
 # board's own markers (a mirrored or other-dictionary board shows none: then the latest three).
 SAMPLES = 3
@@ -46,6 +52,7 @@ class BoardWatch:
         self.checks = 0  # diagnoses run (each is a few hundred ms of detection)
         self._found = False  # a frame showed the configured board: it is the right one, nothing to watch
         self._streak = 0  # frames in a row without a usable board
+        self._next_check = CHECK_EVERY  # ... at which the next diagnosis runs
         self._samples: list[tuple[int, int, np.ndarray]] = []  # (own markers, frame index, grey) since the last diagnosis
 
     def see(self, frame: Frame, detection: Detection, spec: BoardSpec) -> str:
@@ -61,8 +68,9 @@ class BoardWatch:
         self._streak += 1
         if self._streak % SAMPLE_EVERY == 1:
             self._keep(frame.index, frame.grey(), int(detection.marker_ids.size))
-        if self._streak % CHECK_EVERY == 0:
+        if self._streak == self._next_check:
             self.checks += 1
+            self._next_check += CHECK_EVERY * min(2 ** self.checks, MAX_BACKOFF)
             most_markers = max(markers for markers, _i, _g in self._samples)
             error = diagnose_board_mismatch(spec, [g for _m, _i, g in self._samples],
                                             specific_only=most_markers < MARKERS_FOR_A_BOARD)
@@ -72,6 +80,8 @@ class BoardWatch:
         return self.hint
 
     def _keep(self, frame_index: int, grey: np.ndarray, markers: int) -> None:
+        while grey.shape[1] > MAX_SAMPLE_WIDTH:
+            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
         self._samples.append((markers, frame_index, grey.copy()))
         if len(self._samples) > SAMPLES:
             # the fewest markers go first, and of those the oldest
