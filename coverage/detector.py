@@ -282,9 +282,11 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
         )
     markers_on_board = (spec.squares_x * spec.squares_y) // 2
     if own_ids and max(own_ids) >= markers_on_board:
+        size = _squares_that_match(spec, greys)
         return BoardError(
             f"the images show marker ids up to {max(own_ids)}, but a {spec.squares_x}x{spec.squares_y} board uses ids "
-            f"0-{markers_on_board - 1}; the print has more squares: pass the right --squares WxH"
+            f"0-{markers_on_board - 1}; the print has more squares"
+            + (f": they form the corners of a {_size_words(*size)}" if size else ": pass the right --squares WxH")
         )
     candidates = [
         (f"--squares {spec.squares_y}x{spec.squares_x} (width and height swapped)",
@@ -299,9 +301,66 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
                 f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; "
                 f"it matches with {advice}"
             )
+    size = _squares_that_match(spec, greys)
+    if size is not None:
+        return BoardError(
+            f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; they form the "
+            f"corners of a {_size_words(*size)}"
+        )
     if specific_only:
         return None
     return BoardError(
         f"markers of {spec.dictionary} are visible (ids {sorted(own_ids)[:12]}) but they never form the corners of a "
         f"{spec.squares_x}x{spec.squares_y} board; check --squares, --square-mm/--marker-mm and the dictionary"
     )
+
+
+# Boards up to this many squares a side are tried when the frames' markers form no corners of the
+# configured one (a 5 x 7 print with the default 8 x 11 configured is the commonest mistake).
+_MAX_SQUARES_TRIED = 16
+
+
+def _squares_that_match(spec: BoardSpec, greys: list[np.ndarray]) -> tuple[int, int, bool] | None:
+    """(squares_x, squares_y, legacy) of the board of `spec`'s dictionary whose corners the frames'
+    markers form, or None.
+
+    The markers are found once per frame; each layout then only interpolates its corners from them
+    (`detectBoard` handed the markers, ~1 ms), so every board of 3 to `_MAX_SQUARES_TRIED` squares a
+    side with a marker for the highest id seen is tried (~0.5 s on three 720p frames). A layout is
+    named when it forms at least 6 corners in a frame and twice what the configured one forms: a
+    few markers of the right board (too far for corners) must not be called another board.
+    """
+    aruco = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary_id(spec.dictionary)),
+                                    _aruco_parameters(inverted=spec.inverted is not False))
+    found = []
+    for grey in greys:
+        corners, ids, _rejected = aruco.detectMarkers(grey)
+        if ids is not None and len(ids) >= BOARD_LIKE_MARKERS:
+            found.append((grey, corners, ids))
+    if not found:
+        return None
+    highest = max(int(np.max(ids)) for _g, _c, ids in found)
+    codes = aruco.getDictionary().bytesList.shape[0]  # markers the dictionary has: a larger board cannot be printed
+    configured = max(CharucoBoardDetector(spec).detect(grey).corner_count for grey in greys)
+    best: tuple[int, int, int, int, bool] | None = None  # (corners, markers, squares_x, squares_y, legacy)
+    for squares_x in range(3, _MAX_SQUARES_TRIED + 1):
+        for squares_y in range(3, _MAX_SQUARES_TRIED + 1):
+            markers = squares_x * squares_y // 2
+            if not highest < markers <= codes or (squares_x, squares_y) == (spec.squares_x, spec.squares_y):
+                continue
+            for legacy in (False, True) if squares_y % 2 == 0 else (False,):  # odd rows print alike in both
+                board = BoardSpec(squares_x, squares_y, spec.square_mm, spec.marker_mm, spec.dictionary).cv_board(legacy=legacy)
+                detector = cv2.aruco.CharucoDetector(board)
+                formed = 0
+                for grey, corners, ids in found:
+                    charuco_ids = detector.detectBoard(grey, markerCorners=corners, markerIds=ids)[1]
+                    formed = max(formed, 0 if charuco_ids is None else len(charuco_ids))
+                if formed >= 6 and formed >= 2 * configured and (best is None or (formed, -markers) > (best[0], -best[1])):
+                    best = (formed, markers, squares_x, squares_y, legacy)
+    return None if best is None else (best[2], best[3], best[4])
+
+
+def _size_words(squares_x: int, squares_y: int, legacy: bool) -> str:
+    pattern = ", legacy pattern" if legacy else ""
+    return (f"{squares_x}x{squares_y} board{pattern}: pass --squares {squares_x}x{squares_y}{' --legacy' if legacy else ''} "
+            "(and its measured --square-mm and --marker-mm)")

@@ -40,7 +40,7 @@ def test_a_mirrored_camera_is_named_once_enough_frames_came_without_the_board() 
 
 def test_a_smaller_print_than_configured_is_said_to_be_some_other_board() -> None:
     _assistant, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + 1))
-    assert "never form the corners of a 8x11 board" in hints[-1] and "--squares" in hints[-1]
+    assert "no corners match a 8x11 squares" in hints[-1] and "--squares 5x7" in hints[-1]
 
 
 def test_the_right_board_far_or_partial_is_not_called_another_board() -> None:

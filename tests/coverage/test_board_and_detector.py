@@ -84,6 +84,7 @@ def test_legacy_pattern_is_detected_on_an_even_row_board() -> None:
     (BoardSpec(dictionary="DICT_4X4_100"), "pass --dictionary DICT_5X5_100"),
     (BoardSpec(squares_x=11, squares_y=8), "--squares 8x11"),
     (BoardSpec(squares_x=6, squares_y=7), "ids up to 43"),
+    (BoardSpec(squares_x=6, squares_y=7), "they form the corners of a 8x11 board: pass --squares 8x11"),
 ])
 def test_wrong_board_gets_a_one_line_fix(wrong: BoardSpec, advice: str) -> None:
     photo = board_photo(BoardSpec())
@@ -91,6 +92,18 @@ def test_wrong_board_gets_a_one_line_fix(wrong: BoardSpec, advice: str) -> None:
     error = diagnose_board_mismatch(wrong, [photo])
     assert error is not None and advice in str(error)
     assert "\n" not in str(error)
+
+
+@pytest.mark.parametrize(("printed", "legacy"), [((5, 7), False), ((7, 5), False), ((4, 5), False), ((6, 8), True)])
+def test_a_smaller_print_than_configured_is_measured_from_its_markers(printed: tuple[int, int], legacy: bool) -> None:
+    """The commonest mistake: a 5x7 (or 4x5 ...) board printed, the default 8x11 configured. Its markers
+    read as ids 0-16 of the same dictionary, inside the configured board's range; every layout up to 16
+    squares a side is tried on them, and the one forming the corners is named, legacy pattern and all."""
+    photo = board_photo(BoardSpec(squares_x=printed[0], squares_y=printed[1]), legacy=legacy)
+    assert CharucoBoardDetector(BoardSpec(legacy=legacy)).detect(photo).corner_count < 6
+    error = diagnose_board_mismatch(BoardSpec(), [photo])
+    words = f"--squares {printed[0]}x{printed[1]}" + (" --legacy" if legacy else " (")
+    assert error is not None and words in str(error) and "\n" not in str(error)
 
 
 @pytest.mark.parametrize("spec", [BoardSpec(), BoardSpec(squares_x=4, squares_y=5, dictionary="DICT_4X4_1000")])
