@@ -37,7 +37,11 @@ MAX_SAMPLE_WIDTH = 1920
 # board's own markers (a mirrored or other-dictionary board shows none: then the latest three).
 SAMPLES = 3
 SAMPLE_EVERY = 8
-# The right board, far away or soft, can show a few of its markers and no corners; with this many
+# The right board far away or mostly out of view shows a corner or a few (a 5x7 print under the
+# default 8x11, a mirrored or other-dictionary board show none): samples with any corner of the
+# configured board are not diagnosed. It also spares the frame loop the ~1-2 s a diagnosis costs
+# with a board's markers in view, every 180 frames while the board is held too far for 6 corners.
+# The right board, far away or soft, can also show a few of its markers and no corners; with this many
 # of them in one frame it would have given corners (each pair of neighbours gives one), so only
 # then is "visible but never forming the board's corners" said.
 MARKERS_FOR_A_BOARD = 8
@@ -54,6 +58,7 @@ class BoardWatch:
         self._streak = 0  # frames in a row without a usable board
         self._next_check = CHECK_EVERY  # ... at which the next diagnosis runs
         self._samples: list[tuple[int, int, np.ndarray]] = []  # (own markers, frame index, grey) since the last diagnosis
+        self._corners_seen = False  # ... and whether a frame since then showed any corner of the configured board
 
     def see(self, frame: Frame, detection: Detection, spec: BoardSpec) -> str:
         """Take one decided frame and its detection with `spec` (the board as configured, its print's
@@ -66,15 +71,16 @@ class BoardWatch:
         if self.hint:
             return self.hint  # said: it holds until the board is seen
         self._streak += 1
+        self._corners_seen = self._corners_seen or detection.corner_count > 0
         if self._streak % SAMPLE_EVERY == 1:
             self._keep(frame.index, frame.grey(), int(detection.marker_ids.size))
         if self._streak == self._next_check:
             self.checks += 1
             self._next_check += CHECK_EVERY * min(2 ** self.checks, MAX_BACKOFF)
             most_markers = max(markers for markers, _i, _g in self._samples)
-            error = diagnose_board_mismatch(spec, [g for _m, _i, g in self._samples],
-                                            specific_only=most_markers < MARKERS_FOR_A_BOARD)
-            self._samples = []  # the next diagnosis looks at frames it has not seen
+            error = None if self._corners_seen else diagnose_board_mismatch(
+                spec, [g for _m, _i, g in self._samples], specific_only=most_markers < MARKERS_FOR_A_BOARD)
+            self._samples, self._corners_seen = [], False  # the next diagnosis looks at frames it has not seen
             if error is not None:
                 self.hint = f"No corners of the configured board yet: {error}."
         return self.hint

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from _boards import board_photo
 
+from calibcoach.app import board_watch
 from calibcoach.app.assistant import Assistant
 from calibcoach.app.board_watch import CHECK_EVERY
 from calibcoach.app.cli import main
@@ -43,13 +44,21 @@ def test_a_smaller_print_than_configured_is_said_to_be_some_other_board() -> Non
     assert "no corners match a 8x11 squares" in hints[-1] and "--squares 5x7" in hints[-1]
 
 
-def test_the_right_board_far_or_partial_is_not_called_another_board() -> None:
-    """A single marker of the right board (the rest out of view) gives no corners: no cause to name."""
+def test_the_right_board_far_or_partial_is_not_called_another_board(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A single marker of the right board (the rest out of view) gives no corners: no cause to name. A
+    few more give a corner or four, the sign of the right board: not even diagnosed (1-2 s each)."""
     photo = board_photo(BoardSpec())
-    partial = np.full_like(photo, 128)
-    partial[60:160, 400:520] = photo[60:160, 400:520]  # the top-left square and one marker
-    assistant, hints = steps([partial] * (CHECK_EVERY + 1))
+    one_marker = np.full_like(photo, 128)
+    one_marker[60:160, 400:520] = photo[60:160, 400:520]  # the top-left square and one marker
+    assistant, hints = steps([one_marker] * (CHECK_EVERY + 1))
     assert assistant.board_watch.checks == 1 and hints[-1] == ""
+    diagnosed: list[int] = []
+    real = board_watch.diagnose_board_mismatch
+    monkeypatch.setattr(board_watch, "diagnose_board_mismatch", lambda *a, **k: diagnosed.append(1) or real(*a, **k))
+    four_corners = np.full_like(photo, 128)
+    four_corners[60:260, 400:560] = photo[60:260, 400:560]
+    assistant, hints = steps([one_marker] * (CHECK_EVERY + 1) + [four_corners] * (2 * CHECK_EVERY + 1))
+    assert assistant.board_watch.checks == 2 and len(diagnosed) == 1 and set(hints) == {""}
 
 
 def test_a_mirrored_board_shown_late_is_named_at_the_next_diagnosis() -> None:
