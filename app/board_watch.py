@@ -37,11 +37,7 @@ MAX_SAMPLE_WIDTH = 1920
 # board's own markers (a mirrored or other-dictionary board shows none: then the latest three).
 SAMPLES = 3
 SAMPLE_EVERY = 8
-# The right board far away or mostly out of view shows a corner or a few (a 5x7 print under the
-# default 8x11, a mirrored or other-dictionary board show none): samples with any corner of the
-# configured board are not diagnosed. It also spares the frame loop the ~1-2 s a diagnosis costs
-# with a board's markers in view, every 180 frames while the board is held too far for 6 corners.
-# The right board, far away or soft, can also show a few of its markers and no corners; with this many
+# The right board, far away or soft, can show a few of its markers and no corners; with this many
 # of them in one frame it would have given corners (each pair of neighbours gives one), so only
 # then is "visible but never forming the board's corners" said.
 MARKERS_FOR_A_BOARD = 8
@@ -53,7 +49,7 @@ class BoardWatch:
 
     def __init__(self) -> None:
         self.hint = ""
-        self.checks = 0  # diagnoses run (each is a few hundred ms of detection)
+        self.checks = 0  # diagnoses due so far (each a few hundred ms of detection, unless skipped for corners seen)
         self._found = False  # a frame showed the configured board: it is the right one, nothing to watch
         self._streak = 0  # frames in a row without a usable board
         self._next_check = CHECK_EVERY  # ... at which the next diagnosis runs
@@ -78,6 +74,10 @@ class BoardWatch:
             self.checks += 1
             self._next_check += CHECK_EVERY * min(2 ** self.checks, MAX_BACKOFF)
             most_markers = max(markers for markers, _i, _g in self._samples)
+            # The right board far away or mostly out of view shows a corner or a few; a 5x7 print under
+            # the default 8x11, a mirrored or another dictionary's board show none. So frames with a
+            # corner of the configured board are not diagnosed: no "another board" for the right one,
+            # and no 1-2 s diagnosis in the frame loop every 180 frames while it is held too far.
             error = None if self._corners_seen else diagnose_board_mismatch(
                 spec, [g for _m, _i, g in self._samples], specific_only=most_markers < MARKERS_FOR_A_BOARD)
             self._samples, self._corners_seen = [], False  # the next diagnosis looks at frames it has not seen
