@@ -1,5 +1,5 @@
 """The live hint for a camera showing some other board than the one configured (app/board_watch.py):
-real detection on rendered boards, the Assistant's steps, and the live command on a mirrored folder."""
+real detection on rendered boards, and the live command on a mirrored folder (the Assistant's steps)."""
 
 from __future__ import annotations
 
@@ -12,35 +12,35 @@ import pytest
 from _boards import board_photo
 
 from calibcoach.app import board_watch
-from calibcoach.app.assistant import Assistant
-from calibcoach.app.board_watch import CHECK_EVERY
+from calibcoach.app.board_watch import CHECK_EVERY, BoardWatch
 from calibcoach.app.cli import main
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
+from calibcoach.drivers.base import Frame
 
 
-def steps(images: list[np.ndarray]) -> tuple[Assistant, list[str]]:
-    """Feed `images` at 30 fps (each with its own sensor noise, as a camera's frames); the hint of each decided frame."""
-    assistant = Assistant(BoardSpec(), (1280, 720))
+def steps(images: list[np.ndarray]) -> tuple[BoardWatch, list[str]]:
+    """The watch's hint after each of `images`, each detected with the default board as a session would
+    (the same image once: the watch reads only what the detection found)."""
+    watch, detector, detections = BoardWatch(), CharucoBoardDetector(BoardSpec()), {}
     hints = []
     for i, image in enumerate(images):
-        noise = np.random.default_rng(i).integers(0, 3, image.shape, dtype=np.uint8)
-        step = assistant.feed(cv2.add(image, noise), i * 33_333_333)
-        if step.frame_index >= 0:
-            hints.append(step.guidance.hint)
-    return assistant, hints
+        if id(image) not in detections:
+            detections[id(image)] = detector.detect(image)
+        hints.append(watch.see(Frame(i, i * 33_333_333, image), detections[id(image)], BoardSpec()))
+    return watch, hints
 
 
 def test_a_mirrored_camera_is_named_once_enough_frames_came_without_the_board() -> None:
     mirrored = cv2.flip(board_photo(BoardSpec()), 1)
-    assistant, hints = steps([mirrored] * (CHECK_EVERY + 5))
+    watch, hints = steps([mirrored] * (CHECK_EVERY + 5))
     assert hints[: CHECK_EVERY - 1] == [""] * (CHECK_EVERY - 1)  # not while a board may still be coming into view
     assert all("mirrored left to right" in h and "ffmpeg -vf hflip" in h for h in hints[CHECK_EVERY - 1:])
-    assert assistant.board_watch.checks == 1  # said once, then kept: no second diagnosis
+    assert watch.checks == 1  # said once, then kept: no second diagnosis
 
 
 def test_a_smaller_print_than_configured_is_said_to_be_some_other_board() -> None:
-    _assistant, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + 1))
+    _watch, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + 1))
     assert "no corners match a 8x11 squares" in hints[-1] and "--squares 5x7" in hints[-1]
 
 
@@ -50,15 +50,15 @@ def test_the_right_board_far_or_partial_is_not_called_another_board(monkeypatch:
     photo = board_photo(BoardSpec())
     one_marker = np.full_like(photo, 128)
     one_marker[60:160, 400:520] = photo[60:160, 400:520]  # the top-left square and one marker
-    assistant, hints = steps([one_marker] * (CHECK_EVERY + 1))
-    assert assistant.board_watch.checks == 1 and hints[-1] == ""
+    watch, hints = steps([one_marker] * (CHECK_EVERY + 1))
+    assert watch.checks == 1 and hints[-1] == ""
     diagnosed: list[int] = []
     real = board_watch.diagnose_board_mismatch
     monkeypatch.setattr(board_watch, "diagnose_board_mismatch", lambda *a, **k: diagnosed.append(1) or real(*a, **k))
     four_corners = np.full_like(photo, 128)
     four_corners[60:260, 400:560] = photo[60:260, 400:560]
-    assistant, hints = steps([one_marker] * (CHECK_EVERY + 1) + [four_corners] * (2 * CHECK_EVERY + 1))
-    assert assistant.board_watch.checks == 2 and len(diagnosed) == 1 and set(hints) == {""}
+    watch, hints = steps([one_marker] * (CHECK_EVERY + 1) + [four_corners] * (2 * CHECK_EVERY + 1))
+    assert watch.checks == 2 and len(diagnosed) == 1 and set(hints) == {""}
 
 
 def test_a_mirrored_board_shown_late_is_named_at_the_next_diagnosis() -> None:
@@ -68,25 +68,27 @@ def test_a_mirrored_board_shown_late_is_named_at_the_next_diagnosis() -> None:
     empty = np.full((720, 1280), 128, np.uint8)
     mirrored = cv2.flip(board_photo(BoardSpec()), 1)
     named_at = CHECK_EVERY + 2 * CHECK_EVERY  # the second diagnosis
-    assistant, hints = steps([empty] * (CHECK_EVERY + 10) + [mirrored] * (2 * CHECK_EVERY))
-    assert assistant.board_watch.checks == 2
+    watch, hints = steps([empty] * (CHECK_EVERY + 10) + [mirrored] * (2 * CHECK_EVERY))
+    assert watch.checks == 2
     assert set(hints[: named_at - 1]) == {""} and "mirrored" in hints[named_at - 1] and "mirrored" in hints[-1]
 
 
-def test_a_4k_camera_is_diagnosed_on_halved_frames() -> None:
+def test_a_4k_camera_is_diagnosed_on_halved_frames(monkeypatch: pytest.MonkeyPatch) -> None:
     mirrored = cv2.resize(cv2.flip(board_photo(BoardSpec()), 1), (3840, 2160), interpolation=cv2.INTER_CUBIC)
-    assistant = Assistant(BoardSpec(), (3840, 2160))
-    for i in range(CHECK_EVERY + 1):
-        step = assistant.feed(mirrored, i * 33_333_333)
-    assert "mirrored left to right" in step.guidance.hint
+    widths: list[int] = []
+    real = board_watch.diagnose_board_mismatch
+    monkeypatch.setattr(board_watch, "diagnose_board_mismatch",
+                        lambda spec, greys, **k: widths.extend(g.shape[1] for g in greys) or real(spec, greys, **k))
+    watch, hints = steps([mirrored] * CHECK_EVERY)
+    assert widths == [1920] * 3 and "mirrored left to right" in hints[-1]
 
 
 def test_nothing_is_said_when_the_board_turns_up_and_watching_stops_for_good() -> None:
     empty = np.full((720, 1280), 128, np.uint8)
     right = board_photo(BoardSpec())
-    assistant, hints = steps([empty] * (CHECK_EVERY + 1) + [right] * 3 + [empty] * (2 * CHECK_EVERY + 2))
+    watch, hints = steps([empty] * (CHECK_EVERY + 1) + [right] * 3 + [empty] * (2 * CHECK_EVERY + 2))
     assert set(hints) == {""}
-    assert assistant.board_watch.checks == 1  # the empty scene was diagnosed once (nothing board-like); none after the board
+    assert watch.checks == 1  # the empty scene was diagnosed once (nothing board-like); none after the board
 
 
 def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tmp_path: Path,
@@ -98,7 +100,7 @@ def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tm
     greys = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
              for path in sorted((recordings_dir / "demo_webcam720_careful" / "frames").glob("*.png"))]
     showing = [grey for grey in greys if detector.detect(grey).corner_count >= 20]  # 42 of the 120 frames
-    for i in range(2 * CHECK_EVERY):  # mirrored, played twice over
+    for i in range(CHECK_EVERY + 15):  # mirrored, the first ones played twice
         cv2.imwrite(str(folder / f"{i:04d}.png"), cv2.flip(showing[i % len(showing)], 1))
     steps_path = tmp_path / "steps.jsonl"
     code = main(["live", "--source", str(folder), "--out", str(tmp_path / "o"), "--no-viewer", "--speed", "0.5",
