@@ -99,7 +99,7 @@ def board_pattern(data: dict | None) -> str:
 
 def verdict_of(code: int, data: dict | None, last: str) -> str:
     if data is None:
-        return f"error (exit {code}): {last[:110]}"
+        return f"error (exit {code}): {last.split(';')[0]}"  # the message's first clause: what was (not) found
     return f"{data['verdict']['grade']} (exit {code})"
 
 
