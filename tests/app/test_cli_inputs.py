@@ -74,6 +74,16 @@ def test_wrong_dictionary_on_a_real_capture(shared_data: Path, tmp_path: Path, c
     assert_one_line_error(err, "DICT_4X4", "--dictionary")
 
 
+def test_a_real_print_of_another_size_is_measured_from_its_markers(shared_data: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """caliscope's inverted 4x5 print with only its dictionary given (the default 8x11 otherwise)."""
+    video = shared_data / "caliscope_webcam_charuco_4x5" / "video" / "cam_0.mp4"
+    code, _, err = run_cli(capsys, "calibrate", str(video), "--out", str(tmp_path / "o"), "--quiet", "--no-viewer",
+                           "--dictionary", "DICT_4X4_1000")
+    assert code == 2
+    assert_one_line_error(err, "no corners match a 8x11 squares", "they form the corners of a 4x5 board: pass --squares 4x5")
+
+
 def test_chessboard_photos_are_not_a_charuco_board(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = run_cli(capsys, "calibrate", str(shared_data / "boofcv_sony_hx5v_chess"), "--out", str(tmp_path / "o"))
     assert code == 2
