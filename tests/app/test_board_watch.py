@@ -100,10 +100,10 @@ def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tm
     greys = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
              for path in sorted((recordings_dir / "demo_webcam720_careful" / "frames").glob("*.png"))]
     showing = [grey for grey in greys if detector.detect(grey).corner_count >= 20]  # 42 of the 120 frames
-    for i in range(CHECK_EVERY + 15):  # mirrored, the first ones played twice
+    for i in range(CHECK_EVERY + 25):  # mirrored, the first ones played twice
         cv2.imwrite(str(folder / f"{i:04d}.png"), cv2.flip(showing[i % len(showing)], 1))
     steps_path = tmp_path / "steps.jsonl"
-    code = main(["live", "--source", str(folder), "--out", str(tmp_path / "o"), "--no-viewer", "--speed", "0.5",
+    code = main(["live", "--source", str(folder), "--out", str(tmp_path / "o"), "--no-viewer", "--speed", "0.35",
                  "--guidance-jsonl", str(steps_path)])
     assert code == 2  # and the capture's end says it again, as an error
     lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
