@@ -259,15 +259,16 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
     counts: dict[str, int] = {}  # markers found in all the frames, per dictionary
     most: dict[str, int] = {}  # ... and in the richest frame: what tells a board from stray look-alikes
     own_ids: set[int] = set()
+    own_markers: list[tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]] = []  # (grey, corners, ids) of the board's dictionary
     for name in _DISTINCT_DICTIONARIES:
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), _aruco_parameters(inverted=True))
         found = []
         for grey in greys:
-            _corners, ids, _rej = detector.detectMarkers(grey)
-            ids = np.zeros(0, np.int32) if ids is None else np.asarray(ids).reshape(-1)
-            found.append(ids.size)
-            if getattr(cv2.aruco, name) == own:
-                own_ids.update(int(i) for i in ids)
+            corners, ids, _rej = detector.detectMarkers(grey)
+            found.append(0 if ids is None else len(ids))
+            if getattr(cv2.aruco, name) == own and ids is not None:
+                own_ids.update(int(i) for i in np.asarray(ids).reshape(-1))
+                own_markers.append((grey, corners, ids))
         counts[name], most[name] = sum(found), max(found)
     boards = [name for name in counts if most[name] >= BOARD_LIKE_MARKERS]
     if not boards:
@@ -283,7 +284,7 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
     markers_on_board = (spec.squares_x * spec.squares_y) // 2
     beyond = sorted(i for i in own_ids if i >= markers_on_board)
     if len(beyond) >= BOARD_LIKE_MARKERS:  # a misread id or two on the right board's soft frames is not a larger print
-        size = _squares_that_match(spec, greys)
+        size = _squares_that_match(spec, own_markers)
         return BoardError(
             f"the images show marker ids up to {beyond[-1]}, but a {spec.squares_x}x{spec.squares_y} board uses ids "
             f"0-{markers_on_board - 1}; the print has more squares"
@@ -306,7 +307,7 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
                 f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; "
                 f"it matches with {advice}"
             )
-    size = _squares_that_match(spec, greys)
+    size = _squares_that_match(spec, own_markers)
     if size is not None:
         return BoardError(
             f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; they form the "
@@ -325,29 +326,24 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
 _MAX_SQUARES_TRIED = 16
 
 
-def _squares_that_match(spec: BoardSpec, greys: list[np.ndarray]) -> tuple[int, int, bool] | None:
+def _squares_that_match(spec: BoardSpec,
+                        markers: list[tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]]) -> tuple[int, int, bool] | None:
     """(squares_x, squares_y, legacy) of the board of `spec`'s dictionary whose corners the frames'
-    markers form, or None.
+    `markers` form (grey, corners, ids per frame: what the dictionary search found), or None.
 
-    The markers are found once per frame; each layout then only interpolates its corners from them
-    (`detectBoard` handed the markers, ~1 ms), so every board of 3 to `_MAX_SQUARES_TRIED` squares a
-    side with a marker for the highest id seen is tried (~0.5 s on three 720p frames). A layout is
+    Each layout only interpolates its corners from the markers (`detectBoard` handed them, ~1 ms),
+    so every board of 3 to `_MAX_SQUARES_TRIED` squares a side with a marker for the highest id
+    seen is tried (~0.5 s on three 720p frames). A layout is
     named when it forms at least 6 corners in a frame and twice what the configured one forms from
     the same markers: the right board's frames must not be called another board
     (bench/board_mismatch.py: soft and moving frames of renders were, before the configured layout
     was asked the same way).
     """
-    aruco = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary_id(spec.dictionary)),
-                                    _aruco_parameters(inverted=spec.inverted is not False))
-    found = []
-    for grey in greys:
-        corners, ids, _rejected = aruco.detectMarkers(grey)
-        if ids is not None and len(ids) >= BOARD_LIKE_MARKERS:
-            found.append((grey, corners, ids))
+    found = [(grey, corners, ids) for grey, corners, ids in markers if len(ids) >= BOARD_LIKE_MARKERS]
     if not found:
         return None
+    codes = cv2.aruco.getPredefinedDictionary(dictionary_id(spec.dictionary)).bytesList.shape[0]  # a larger board cannot be printed
     highest = max(int(np.max(ids)) for _g, _c, ids in found)
-    codes = aruco.getDictionary().bytesList.shape[0]  # markers the dictionary has: a larger board cannot be printed
 
     def formed(squares_x: int, squares_y: int, legacy: bool) -> int:
         """Most corners one frame's markers form on this layout."""
