@@ -117,7 +117,8 @@ class Assistant:
         self._count = 0
         self.last_outcome: FrameOutcome | None = None
         self.watch = FocusWatch(locked_controls)
-        self.board_watch = BoardWatch()  # says when the frames show some other board (mirrored, other size ...)
+        # says when the frames show some other board (mirrored, other size ...)
+        self.board_watch = BoardWatch(self.session.settings.selector.min_corners)
         self._locked = dict(locked_controls or {})
         self._recorded_events = list(focus_events)  # in the order they happened
 

@@ -41,13 +41,17 @@ SAMPLE_EVERY = 8
 # of them in one frame it would have given corners (each pair of neighbours gives one), so only
 # then is "visible but never forming the board's corners" said.
 MARKERS_FOR_A_BOARD = 8
-_MIN_CORNERS = 6
 
 
 class BoardWatch:
-    """Feed it every decided frame (`see`); `hint` is what to tell the person about the board, or ""."""
+    """Feed it every decided frame (`see`); `hint` is what to tell the person about the board, or "".
 
-    def __init__(self) -> None:
+    `min_corners`: the corners a frame needs to count (the session's `SelectorSettings.min_corners`);
+    one that has them shows the configured board.
+    """
+
+    def __init__(self, min_corners: int) -> None:
+        self.min_corners = min_corners
         self.hint = ""
         self.checks = 0  # diagnoses due so far (each a few hundred ms of detection, unless skipped for corners seen)
         self._found = False  # a frame showed the configured board: it is the right one, nothing to watch
@@ -61,7 +65,7 @@ class BoardWatch:
         variant settled where known); returns the current hint ("" when there is nothing to say)."""
         if self._found:
             return ""
-        if detection.corner_count >= _MIN_CORNERS:
+        if detection.corner_count >= self.min_corners:
             self._found, self.hint, self._samples = True, "", []
             return ""
         if self.hint:

@@ -16,13 +16,14 @@ from calibcoach.app.board_watch import CHECK_EVERY, BoardWatch
 from calibcoach.app.cli import main
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
+from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.base import Frame
 
 
 def steps(images: list[np.ndarray]) -> tuple[BoardWatch, list[str]]:
     """The watch's hint after each of `images`, each detected with the default board as a session would
     (the same image once: the watch reads only what the detection found)."""
-    watch, detector, detections = BoardWatch(), CharucoBoardDetector(BoardSpec()), {}
+    watch, detector, detections = BoardWatch(SelectorSettings().min_corners), CharucoBoardDetector(BoardSpec()), {}
     hints = []
     for i, image in enumerate(images):
         if id(image) not in detections:
