@@ -194,6 +194,7 @@ class Assistant:
         if event is not None:
             self._stop_accepting(event)
         board_hint = self.board_watch.see(frame, detection, self.session.board)
+        self.session.board_mismatch = self.board_watch.finding  # the end of a capture without the board says it, not diagnosing again
         if board_hint:  # no frame has shown the board: nothing the session could say about holding it applies
             outcome = replace(outcome, guidance=replace(outcome.guidance, hint=board_hint))
         self.last_outcome = outcome

@@ -19,6 +19,7 @@ import numpy as np
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
 from calibcoach.drivers.base import Frame
+from calibcoach.drivers.errors import BoardError
 
 # Frames in a row without a usable board before the first diagnosis: 1.5 s at 30 fps. A person
 # bringing the right board into view is past it within a few frames of it entering, so it is not
@@ -53,6 +54,7 @@ class BoardWatch:
     def __init__(self, min_corners: int) -> None:
         self.min_corners = min_corners
         self.hint = ""
+        self.finding: BoardError | None = None  # the cause `hint` names, for the capture's end to say again
         self.checks = 0  # diagnoses due so far (each a few hundred ms of detection, unless skipped for corners seen)
         self._found = False  # a frame showed the configured board: it is the right one, nothing to watch
         self._streak = 0  # frames in a row without a usable board
@@ -86,6 +88,7 @@ class BoardWatch:
                 spec, [g for _m, _i, g in self._samples], specific_only=most_markers < MARKERS_FOR_A_BOARD)
             self._samples, self._corners_seen = [], False  # the next diagnosis looks at frames it has not seen
             if error is not None:
+                self.finding = error
                 self.hint = f"No corners of the configured board yet: {error}."
         return self.hint
 

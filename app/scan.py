@@ -42,7 +42,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibcoach.coverage.detector import TRACK_MAX_SHIFT_PX, CharucoBoardDetector, Detection
+from calibcoach.coverage.detector import (
+    MIN_FRAME_CORNERS,
+    TRACK_MAX_SHIFT_PX,
+    CharucoBoardDetector,
+    Detection,
+)
 from calibcoach.coverage.sharpness import percentile_spread
 from calibcoach.drivers.base import Frame, frames_ahead
 
@@ -76,7 +81,6 @@ _TRANSIT_CHANGE = 0.4
 _TRANSIT_SAMPLE = 8
 _FOOTAGE_AFTER = 5
 _SAME_SCENE_CHANGE = 0.015  # no board and a change this small (~3 of 200 grey levels): the same empty scene
-_MIN_CORNERS = 6
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,7 +201,7 @@ class HeldFrameScan:
             self.detected += 1
             return self._fresh(Seen(frame, plan.detection.result(), None, None, in_transit=plan.transit), previous)
         assert previous is not None  # the first frame is always detected
-        if previous.detection.corner_count >= _MIN_CORNERS:
+        if previous.detection.corner_count >= MIN_FRAME_CORNERS:
             # From the hold's richest detection when it found more corners than the frame before
             # (a partial view's detection flickers: each fresh one finds another few), else from
             # the frame before; the shift is always measured from the frame before.
@@ -219,7 +223,7 @@ class HeldFrameScan:
         """Note a full detection as the hold's richest when it continues the hold (trackable from the frame before)."""
         continues = previous is not None and self._richest is not None and \
             board_shift_px(previous.detection, seen.detection) <= TRACK_MAX_SHIFT_PX
-        if seen.detection.corner_count >= _MIN_CORNERS and \
+        if seen.detection.corner_count >= MIN_FRAME_CORNERS and \
                 (not continues or seen.detection.corner_count >= self._richest.detection.corner_count):  # type: ignore[union-attr]
             self._richest = seen
         elif not continues:

@@ -59,7 +59,7 @@ from calibcoach.coverage.select import (
 from calibcoach.coverage.sharpness import EdgeBlur, edge_blur
 from calibcoach.coverage.virtual_view import BoardGeometry
 from calibcoach.drivers.base import Frame
-from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.errors import BoardError, CalibrationError
 from calibcoach.drivers.geometry import pose_matrix
 from calibcoach.drivers.lens import MODELS, CameraModel
 
@@ -119,6 +119,7 @@ class CalibrationSession(SessionFinish):
         self._previous: tuple[Detection, int] | tuple[None, None] = (None, None)
         self._check_image: tuple[int, np.ndarray] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
+        self.board_mismatch: BoardError | None = None  # ... or what the capture's board watch found (app/board_watch.py)
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
         # frame index -> `EdgeBlur.blur_px` of the last frames whose edges were measured (`hold_blur_px`)
         self._judged_blur: dict[int, float] = {}

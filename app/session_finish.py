@@ -35,7 +35,7 @@ from calibcoach.coverage.pose import estimate_pose, estimate_poses
 from calibcoach.coverage.select import AcceptedView, LookAlikeTable, accepted_view, look_alike_groups
 from calibcoach.coverage.sharpness import EdgeBlur, edge_blur
 from calibcoach.drivers.base import Frame
-from calibcoach.drivers.errors import CalibrationError
+from calibcoach.drivers.errors import BoardError, CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
 # Fewer kept frames than this and the live session has not solved yet (app/session.py solves from here on).
@@ -106,6 +106,7 @@ class SessionFinish:
     _error_weight: np.ndarray | None
     _check_image: tuple[int, np.ndarray] | None
     _samples: list[np.ndarray]
+    board_mismatch: BoardError | None
     _final_poses: tuple[CameraModel, dict[int, BoardPose | None]] | None = None  # see _poses_under
 
     @property
@@ -334,7 +335,8 @@ class SessionFinish:
         breakdown = ", ".join(f"{v} {k}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or (
             "none rejected: the source held too few frames" if self.frames_seen else "no frames at all")
         if self.frames_seen and counts.get("no board", 0) == self.frames_seen:
-            mismatch = diagnose_board_mismatch(self.board, self._samples)
+            # the live board watch's finding where it named one (1-2 s of detection not spent twice)
+            mismatch = self.board_mismatch or diagnose_board_mismatch(self.board, self._samples)
             if mismatch is not None:
                 return mismatch  # type: ignore[return-value]
             return CalibrationError(
@@ -344,5 +346,5 @@ class SessionFinish:
             )
         return CalibrationError(
             f"only {len(self.views)} of {self.frames_seen} frames were usable ({breakdown}); a calibration needs at least 3 "
-            "(and about 20 diverse ones to be trustworthy): capture the board still, close enough for >= 6 corners"
+            f"(and about 20 diverse ones to be trustworthy): capture the board still, close enough for >= {self.settings.selector.min_corners} corners"
         )

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibcoach.coverage.detector import MIN_FRAME_CORNERS
 from calibcoach.coverage.virtual_view import BoardGeometry, VirtualView, virtual_views
 from calibcoach.drivers.geometry import align_z_to, pose_matrix, poses_facing_pixel
 from calibcoach.drivers.lens import CameraModel
@@ -34,7 +35,6 @@ RANGE_NAMES = ("near", "mid", "far")
 MIN_TARGET_CORNERS = 16  # ~a quarter of the default board: a partial view that still pins its pose
 # ... for a smaller board a quarter of it, never under the method's 6 a frame needs to count: a
 # fixed 16 left a 4 x 5 board (12 corners) without a single candidate, so without guidance.
-MIN_FRAME_CORNERS = 6
 MIN_RANGE_M = 0.12  # no board corner closer to the lens than this (a hand, a focus limit)
 _READABLE_SHARE = 0.9  # far stays within 90% of the range where frontal markers become unreadable
 

@@ -17,6 +17,12 @@ import numpy as np
 from calibcoach.coverage.board import DICTIONARY_NAMES, BoardSpec, dictionary_id
 from calibcoach.drivers.errors import BoardError
 
+# The method: a frame counts only with at least 6 ChArUco corners. A board's pose has 6 degrees of
+# freedom and a homography 8, so 4 corners fit any plane exactly and hide a misplaced corner; with 6
+# the fit has slack to show one. Every "does this frame show the board" test reads this one number
+# (the selector's `SelectorSettings.min_corners` starts from it).
+MIN_FRAME_CORNERS = 6
+
 
 @dataclass(frozen=True, slots=True)
 class Detection:
@@ -180,13 +186,13 @@ class CharucoBoardDetector:
                 best = (legacy, inverted, det)
                 continue
             plain = best[2].corner_count
-            if det.corner_count >= 6 and (plain < 6 or det.corner_count > 1.5 * plain):
+            if det.corner_count >= MIN_FRAME_CORNERS and (plain < MIN_FRAME_CORNERS or det.corner_count > 1.5 * plain):
                 best = (legacy, inverted, det)
             elif det.corner_count == best[2].corner_count == 0 and det.marker_ids.size > best[2].marker_ids.size:
                 best = (legacy, inverted, det)  # no corners anywhere: keep the richer marker list for diagnosis
         assert best is not None
         legacy, inverted, det = best
-        if det.corner_count >= 6:
+        if det.corner_count >= MIN_FRAME_CORNERS:
             self.settle(legacy=legacy, inverted=inverted)
         return det
 
@@ -249,7 +255,7 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
     # First, as its markers mislead every other test: a mirrored marker reads as some other code, or
     # none (caliscope's cam_1, a webcam in mirror mode: a 4x5 board's ids 0-9 read as ids up to 871).
     flipped = CharucoBoardDetector(spec)
-    if any(flipped.detect(cv2.flip(grey, 1)).corner_count >= 6 for grey in greys):
+    if any(flipped.detect(cv2.flip(grey, 1)).corner_count >= MIN_FRAME_CORNERS for grey in greys):
         return BoardError(
             f"the images are mirrored left to right: the board ({spec.describe()}) reads only in the flipped image "
             "(a webcam's mirror or selfie mode, or a flipped recording); turn the camera's mirroring (horizontal "
@@ -302,7 +308,7 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
     for advice, candidate in candidates:
         detector = CharucoBoardDetector(candidate)
         found = max(detector.detect(g).corner_count for g in greys)
-        if found >= 6 and found >= 2 * configured:
+        if found >= MIN_FRAME_CORNERS and found >= 2 * configured:
             return BoardError(
                 f"markers of {spec.dictionary} are visible but no corners match a {spec.describe()} board; "
                 f"it matches with {advice}"
@@ -367,7 +373,7 @@ def _squares_that_match(spec: BoardSpec,
                 continue
             for legacy in legacies(squares_y):
                 corners = formed(squares_x, squares_y, legacy)
-                if corners >= 6 and corners >= 2 * configured and (best is None or (corners, -markers) > (best[0], -best[1])):
+                if corners >= MIN_FRAME_CORNERS and corners >= 2 * configured and (best is None or (corners, -markers) > (best[0], -best[1])):
                     best = (corners, markers, squares_x, squares_y, legacy)
     return None if best is None else (best[2], best[3], best[4])
 

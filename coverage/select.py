@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.detector import MIN_FRAME_CORNERS, Detection
 from calibcoach.coverage.grid import Contribution, CoverageMap
 from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.sharpness import EdgeBlur
@@ -33,7 +33,7 @@ REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred
 
 @dataclass(frozen=True, slots=True)
 class SelectorSettings:
-    min_corners: int = 6
+    min_corners: int = MIN_FRAME_CORNERS
     min_spread: float = 0.25  # minor/major principal spread of the corners on the board; 0 = a line
     # Smear within the exposure, px. Measured on renders (720p, uniform smear centred on the frame's
     # time): corners keep their accuracy (bias < 0.01 px, noise unchanged) up to 3 px and start to be

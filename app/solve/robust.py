@@ -27,10 +27,10 @@ from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals
 from calibcoach.app.solve.information import intrinsic_covariance, intrinsic_names
 from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
 from calibcoach.app.solve.weighted import view_weights, weighted_refine
+from calibcoach.coverage.detector import MIN_FRAME_CORNERS
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
 
-MIN_CORNERS = 6
 _UNPOSABLE_TRIES = 6  # frames with fewest corners tried when a fisheye solve cannot start (each try is a solve)
 # chi-square with 2 dof: 18.42 is the 99.99% point, so a clean solve drops ~1 corner in 10,000.
 _CORNER_CHI2 = 18.42
@@ -185,7 +185,7 @@ def robust_calibrate(
         if all(np.array_equal(a, b) for a, b in zip(new_outs, outs, strict=True)):
             break
         outs, norms_out = new_outs, norms
-        few = [int((~o).sum()) < MIN_CORNERS for o in outs]
+        few = [int((~o).sum()) < MIN_FRAME_CORNERS for o in outs]
         if any(few):
             for i in np.flatnonzero(few):
                 dropped_frames.append(DroppedFrame(frames[i].frame_index, f"only {int((~outs[i]).sum())} corners left after removing outlier corners"))

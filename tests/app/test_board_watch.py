@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from _boards import board_photo
 
-from calibcoach.app import board_watch
+from calibcoach.app import board_watch, session_finish
 from calibcoach.app.board_watch import CHECK_EVERY, BoardWatch
 from calibcoach.app.cli import main
 from calibcoach.coverage.board import BoardSpec
@@ -92,9 +92,15 @@ def test_nothing_is_said_when_the_board_turns_up_and_watching_stops_for_good() -
     assert watch.checks == 1  # the empty scene was diagnosed once (nothing board-like); none after the board
 
 
-def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tmp_path: Path,
+def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                         capsys: pytest.CaptureFixture[str]) -> None:
-    """A webcam in mirror mode, live: the status says so on a line of its own long before the capture ends."""
+    """A webcam in mirror mode, live: the status says so on a line of its own long before the capture ends,
+    and the capture's end says it again from that one diagnosis (1-2 s), not from a second."""
+    diagnosed: list[str] = []
+    for module in (board_watch, session_finish):
+        real = module.diagnose_board_mismatch
+        monkeypatch.setattr(module, "diagnose_board_mismatch",
+                            lambda *a, _m=module.__name__, _real=real, **k: diagnosed.append(_m) or _real(*a, **k))
     folder = tmp_path / "mirrored"
     folder.mkdir()
     detector = CharucoBoardDetector(BoardSpec())
@@ -112,3 +118,5 @@ def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tm
     assert len(lines) > CHECK_EVERY and hinted == list(range(CHECK_EVERY - 1, len(lines)))  # from the first diagnosis on
     said = [line for line in capsys.readouterr().err.splitlines() if "mirrored left to right" in line]
     assert said[0].startswith("calibcoach: No corners of the configured board yet: the images are mirrored")
+    assert said[-1].startswith("calibcoach: error: the images are mirrored left to right")
+    assert diagnosed == ["calibcoach.app.board_watch"]
