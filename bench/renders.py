@@ -67,6 +67,11 @@ CELLS: dict[str, Cell] = {
     "messy720_mjpg": Cell("webcam720", "sloppy", 1.0, "mjpg", False, 30.0, 784 / 30),
     "wide1080_mjpg": Cell("wide1080", "careful", 2.0, "mjpg", False, 20.0, 26.0),
     "fisheye150_png": Cell("fisheye150", "careful", 2.0, "png", False, 30.0, 784 / 30),
+    # the same hands in the other container: the held-out judging reads each 720p style both as a
+    # PNG folder (no timestamps: judged as photos, by the image alone) and as an MJPG video
+    "careful720_mjpg": Cell("webcam720", "careful", 1.0, "mjpg", False, 30.0, 784 / 30),
+    "dim720_png": Cell("webcam720", "careful", 2.0, "png", True, 30.0, 784 / 30),
+    "messy720_png": Cell("webcam720", "sloppy", 1.0, "png", False, 30.0, 784 / 30),
 }
 # Seeds no tuning of calibcoach has used (the unit tests, guided bench and recordings use 0-9).
 SEEDS = (101, 102, 103, 104, 105)
