@@ -11,6 +11,7 @@ to the wrong person it sends them after the wrong fix, so this bench measures bo
    the most markers any dictionary showed in one such frame, and the claims made.
 2. Prints of other sizes under the default board (rendered by OpenCV, and caliscope's real 4x5
    print given only its dictionary): the layout named.
+3. A real plain chessboard (BoofCV's photos): named as one.
 
     .venv/bin/python bench/board_mismatch.py [--data ../shared/data]
 
@@ -135,6 +136,15 @@ def main() -> int:
         own = CharucoBoardDetector(BoardSpec(4, 5, 54.0, 40.5, "DICT_4X4_1000"))
         showing = [g for g in greys_of(video) if own.detect(g).corner_count >= 6][:6]
         lines.append(sized("caliscope cam_0, real inverted 4x5", showing, BoardSpec(dictionary="DICT_4X4_1000"), "--squares 4x5"))
+        print(lines[-1], flush=True)
+    chess = args.data / "boofcv_sony_hx5v_chess"
+    if chess.is_dir():  # a real plain chessboard (BoofCV's 13 photos, 5x7 squares), three at a time as the watch samples
+        photos = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(chess.glob("frame*.jpg"))]
+        said = [str(diagnose_board_mismatch(BoardSpec(), photos[i:i + 3], specific_only=True)) for i in range(0, len(photos) - 2, 3)]
+        named = sum("a plain chessboard" in s for s in said)
+        lines += ["", "A real plain chessboard (BoofCV's Sony HX5V photos, 5x7 squares) under the default board, three "
+                  f"photos at a time: named a plain chessboard in {named} of {len(said)} diagnoses"
+                  + (f" ({said[0].split(', not a ChArUco')[0]})" if named else "")]
         print(lines[-1], flush=True)
     (ROOT / "results" / "board_mismatch.md").write_text("\n".join(lines) + "\n")
     return 0

@@ -278,6 +278,14 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
         counts[name], most[name] = sum(found), max(found)
     boards = [name for name in counts if most[name] >= BOARD_LIKE_MARKERS]
     if not boards:
+        chessboard = _plain_chessboard(greys)
+        if chessboard is not None:
+            return BoardError(
+                f"the images show a plain chessboard (at least {chessboard[0]}x{chessboard[1]} squares, no markers in its "
+                "white squares), not a ChArUco board; calibcoach calibrates from ChArUco boards, whose markers name every "
+                "corner so that partial and steep views count: print one with `calibcoach board --out board.pdf` "
+                f"(the default {BoardSpec().describe()}), measure a square and a marker, and capture again"
+            )
         return None  # nothing board-like: no markers, or a stray one or two a textured scene reads as markers
     seen = max(boards, key=lambda n: counts[n])
     own_count = sum(n for name, n in counts.items() if getattr(cv2.aruco, name) == own)  # under whichever alias
@@ -325,6 +333,56 @@ def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specifi
         f"markers of {spec.dictionary} are visible (ids {sorted(own_ids)[:12]}) but they never form the corners of a "
         f"{spec.squares_x}x{spec.squares_y} board; check --squares, --square-mm/--marker-mm and the dictionary"
     )
+
+
+# A chessboard's squares are flat inside; a ChArUco board's white squares hold markers. Inside the
+# middle half of each square found, a plain print's grey levels spread by ~1% of the black-white
+# contrast (BoofCV's real photos: 0.00-0.01; JPEG noise and uneven light included), a ChArUco board's
+# marker squares by 40-400% (rendered, sharp to blurred by 3 px, where the markers no longer read but
+# OpenCV's chessboard search still finds their checker): a square counts as flat under 10%, and the
+# print as plain when three quarters of its squares are flat.
+_FLAT_SQUARE = 0.10
+_FLAT_SHARE = 0.75
+_CHESSBOARD_SEARCH_WIDTH = 1280  # frames wider than this are searched halved (the search's time grows with the pixels)
+
+
+def _plain_chessboard(greys: list[np.ndarray]) -> tuple[int, int] | None:
+    """(squares across, squares down) of a plain chessboard (no markers) in any of `greys`, or None."""
+    for grey in greys:
+        while grey.shape[1] > _CHESSBOARD_SEARCH_WIDTH:
+            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        found, corners, meta = cv2.findChessboardCornersSBWithMeta(grey, (3, 3), cv2.CALIB_CB_LARGER)
+        if not found or meta is None:
+            continue
+        rows, cols = meta.shape[:2]  # inner corners found (the pattern may extend beyond them)
+        if _squares_flat(grey, np.asarray(corners, np.float64).reshape(rows, cols, 2)):
+            return cols + 1, rows + 1
+    return None
+
+
+def _squares_flat(grey: np.ndarray, grid: np.ndarray) -> bool:
+    """Whether the squares between `grid`'s (rows, cols, 2) inner corners are flat, as a plain chessboard's are."""
+    spreads, means = [], []
+    for r in range(grid.shape[0] - 1):
+        for c in range(grid.shape[1] - 1):
+            quad = np.array([grid[r, c], grid[r, c + 1], grid[r + 1, c + 1], grid[r + 1, c]])
+            middle = quad.mean(axis=0) + 0.5 * (quad - quad.mean(axis=0))  # clear of the edges' blur
+            x0, y0 = np.floor(middle.min(axis=0)).astype(int)
+            x1, y1 = np.ceil(middle.max(axis=0)).astype(int) + 1
+            if x0 < 0 or y0 < 0 or x1 > grey.shape[1] or y1 > grey.shape[0]:
+                continue
+            mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            cv2.fillConvexPoly(mask, np.round(middle - [x0, y0]).astype(np.int32), 1)
+            pixels = grey[y0:y1, x0:x1][mask > 0].astype(np.float64)
+            if pixels.size >= 9:
+                spreads.append(pixels.std())
+                means.append(pixels.mean())
+    if len(means) < 4:
+        return False
+    contrast = float(np.percentile(means, 90) - np.percentile(means, 10))
+    if contrast < 20.0:  # no black and white squares to compare with
+        return False
+    return float(np.mean(np.array(spreads) < _FLAT_SQUARE * contrast)) >= _FLAT_SHARE
 
 
 # Boards up to this many squares a side are tried when the frames' markers form no corners of the

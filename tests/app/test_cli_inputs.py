@@ -87,7 +87,7 @@ def test_a_real_print_of_another_size_is_measured_from_its_markers(shared_data: 
 def test_chessboard_photos_are_not_a_charuco_board(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = run_cli(capsys, "calibrate", str(shared_data / "boofcv_sony_hx5v_chess"), "--out", str(tmp_path / "o"))
     assert code == 2
-    assert_one_line_error(err, "at most a stray ArUco marker", "a plain chessboard has no markers")
+    assert_one_line_error(err, "a plain chessboard (at least 7x5 squares", "calibcoach board --out board.pdf")
 
 
 def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -118,6 +118,37 @@ def test_a_mirrored_image_is_named_as_such(spec: BoardSpec) -> None:
     assert "mirrored" not in str(diagnose_board_mismatch(BoardSpec(dictionary="DICT_4X4_100"), [board_photo(BoardSpec())]))
 
 
+def plain_chessboard_photo(squares: tuple[int, int]) -> np.ndarray:
+    """A plain chessboard (no markers) of `squares` (across, down), tilted, in a 720p frame, softened as a webcam's."""
+    cols, rows = squares
+    board = np.kron((np.indices((rows, cols)).sum(axis=0) % 2 * 255).astype(np.uint8), np.ones((60, 60), np.uint8))
+    board = cv2.copyMakeBorder(board, 40, 40, 40, 40, cv2.BORDER_CONSTANT, value=255)
+    h, w = board.shape
+    corners = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    placed = np.float32([[300, 120], [980, 170], [940, 640], [330, 600]])
+    photo = cv2.warpPerspective(board, cv2.getPerspectiveTransform(corners, placed), (1280, 720), borderValue=110)
+    return cv2.GaussianBlur(photo, (0, 0), 0.8)
+
+
+def test_a_plain_chessboard_is_named_with_its_size() -> None:
+    """The commonest calibration target of all: said to be a plain chessboard, not "no board", so the person
+    prints a ChArUco board instead of checking focus and light."""
+    error = diagnose_board_mismatch(BoardSpec(), [plain_chessboard_photo((9, 6))], specific_only=True)
+    assert error is not None and "a plain chessboard (at least 9x6 squares" in str(error)
+    assert "calibcoach board --out board.pdf" in str(error) and "\n" not in str(error)
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 2.0, 3.0, 5.0])
+def test_the_right_board_too_soft_for_its_markers_is_not_called_a_plain_chessboard(blur_px: float) -> None:
+    """OpenCV's chessboard search finds a ChArUco board's checker even where its markers no longer read
+    (blurred by 3 px): the markers inside its white squares tell it from a plain print."""
+    photo = board_photo(BoardSpec())
+    soft = cv2.GaussianBlur(photo, (0, 0), blur_px) if blur_px else photo
+    found, _corners, _meta = cv2.findChessboardCornersSBWithMeta(soft, (3, 3), cv2.CALIB_CB_LARGER)
+    assert found or blur_px > 3  # the checker is found: the test is the flatness of its squares
+    assert "chessboard" not in str(diagnose_board_mismatch(BoardSpec(dictionary="DICT_4X4_50"), [soft]))
+
+
 def test_no_markers_at_all_gives_no_diagnosis() -> None:
     assert diagnose_board_mismatch(BoardSpec(), [np.full((720, 1280), 128, np.uint8)]) is None
 
