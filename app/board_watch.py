@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
+from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
+from calibcoach.coverage.detector import Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import BoardError
 

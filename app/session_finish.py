@@ -27,9 +27,10 @@ from calibcoach.app.solve.result import Calibration, ModelChoice, View
 from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
 from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px, judge
+from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
 from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.corner_refine import refine_on_checker_edges
-from calibcoach.coverage.detector import Detection, diagnose_board_mismatch
+from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose, estimate_poses
 from calibcoach.coverage.select import AcceptedView, LookAlikeTable, accepted_view, look_alike_groups

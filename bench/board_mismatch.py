@@ -1,6 +1,6 @@
 """What the board diagnosis says where it must say nothing, and where it must name the board.
 
-The diagnosis (`coverage.detector.diagnose_board_mismatch`) runs live on a few frames once 45 have
+The diagnosis (`coverage.board_diagnosis.diagnose_board_mismatch`) runs live on a few frames once 45 have
 come without the board (app/board_watch.py) and at the end of a capture that never showed it. Said
 to the wrong person it sends them after the wrong fix, so this bench measures both sides:
 
@@ -35,12 +35,8 @@ sys.path.insert(0, str(ROOT.parent / "tests" / "app"))
 from _boards import board_photo  # noqa: E402  (tests/app/_boards.py: the board printed in a 720p frame)
 
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
-from calibcoach.coverage.detector import (  # noqa: E402
-    _DISTINCT_DICTIONARIES,
-    CharucoBoardDetector,
-    _aruco_parameters,
-    diagnose_board_mismatch,
-)
+from calibcoach.coverage.board_diagnosis import _DISTINCT_DICTIONARIES, diagnose_board_mismatch  # noqa: E402
+from calibcoach.coverage.detector import CharucoBoardDetector, _aruco_parameters  # noqa: E402
 
 FRAMES_READ = 600  # of each source, every STEP-th
 STEP = 5

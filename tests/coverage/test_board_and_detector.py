@@ -10,7 +10,8 @@ import pytest
 from _boards import board_photo
 
 from calibcoach.coverage.board import BoardSpec, dictionary_id
-from calibcoach.coverage.detector import BOARD_LIKE_MARKERS, CharucoBoardDetector, diagnose_board_mismatch
+from calibcoach.coverage.board_diagnosis import BOARD_LIKE_MARKERS, diagnose_board_mismatch
+from calibcoach.coverage.detector import CharucoBoardDetector
 from calibcoach.drivers.errors import BoardError
 
 
@@ -147,6 +148,22 @@ def test_the_right_board_too_soft_for_its_markers_is_not_called_a_plain_chessboa
     found, _corners, _meta = cv2.findChessboardCornersSBWithMeta(soft, (3, 3), cv2.CALIB_CB_LARGER)
     assert found or blur_px > 3  # the checker is found: the test is the flatness of its squares
     assert "chessboard" not in str(diagnose_board_mismatch(BoardSpec(dictionary="DICT_4X4_50"), [soft]))
+
+
+def test_the_right_board_with_scattered_markers_is_not_called_another_size() -> None:
+    """A far, soft board of a messy render read as 11 scattered markers and 3 corners; a 9 x 10 layout's
+    interpolation pulled 6+ "corners" onto the dense checker and it was told --squares 9x10. The same
+    markers, kept readable on a rendered board: they sit where the configured board has them."""
+    spec = BoardSpec()
+    photo = board_photo(spec)
+    found = CharucoBoardDetector(spec).detect(photo)
+    for corners, marker_id in zip(found.marker_corners_px, found.marker_ids, strict=True):
+        if int(marker_id) not in {1, 3, 5, 10, 12, 15, 17, 21, 29, 34, 42}:  # what the messy frame read
+            cv2.fillConvexPoly(photo, np.round(corners).astype(np.int32), 255)
+    assert CharucoBoardDetector(spec).detect(photo).corner_count < 6
+    assert diagnose_board_mismatch(spec, [photo], specific_only=True) is None
+    said = str(diagnose_board_mismatch(spec, [photo]))
+    assert "where a 8x11 squares" in said and "bring the board closer" in said and "--squares" not in said
 
 
 def test_no_markers_at_all_gives_no_diagnosis() -> None:
