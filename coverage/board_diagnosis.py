@@ -27,9 +27,11 @@ _DISTINCT_DICTIONARIES = list({getattr(cv2.aruco, name): name for name in revers
 def diagnose_board_mismatch(spec: BoardSpec, greys: list[np.ndarray], *, specific_only: bool = False) -> BoardError | None:
     """Explain why `spec` finds no corners in frames that may show some other board.
 
-    Tries, on a few sample frames: a mirrored image, other dictionaries, swapped width/height, legacy
-    pattern, inverted polarity, and marker ids beyond the board's range. Returns an error whose message
-    says what was seen and what to pass instead, or None when nothing board-like is visible at all.
+    Tries, on a few sample frames: a mirrored image, other dictionaries (and, with no markers at all, a
+    plain chessboard), marker ids beyond the board's range, swapped width/height, legacy pattern,
+    inverted polarity and other sizes -- unless the markers sit where the configured board has them.
+    Returns an error whose message says what was seen and what to pass instead, or None when nothing
+    board-like is visible at all.
     `specific_only`: None also where only the board's own markers were seen and none of those tests
     names a cause (the right board too far or too soft for corners looks the same).
     """
