@@ -13,11 +13,10 @@ session showed it.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
+from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch, halved_to_width
 from calibcoach.coverage.detector import Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import BoardError
@@ -69,7 +68,7 @@ class BoardWatch:
         if self._found:
             return ""
         if detection.corner_count >= self.min_corners:
-            self._found, self.hint, self._samples = True, "", []
+            self._found, self.hint, self.finding, self._samples = True, "", None, []
             return ""
         if self.hint:
             return self.hint  # said: it holds until the board is seen
@@ -94,9 +93,7 @@ class BoardWatch:
         return self.hint
 
     def _keep(self, frame_index: int, grey: np.ndarray, markers: int) -> None:
-        while grey.shape[1] > MAX_SAMPLE_WIDTH:
-            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        self._samples.append((markers, frame_index, grey.copy()))
+        self._samples.append((markers, frame_index, halved_to_width(grey, MAX_SAMPLE_WIDTH).copy()))
         if len(self._samples) > SAMPLES:
             # the fewest markers go first, and of those the oldest
             self._samples.remove(min(self._samples, key=lambda s: (s[0], s[1])))

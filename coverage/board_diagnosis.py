@@ -144,11 +144,16 @@ _FLAT_SHARE = 0.75
 _CHESSBOARD_SEARCH_WIDTH = 640
 
 
+def halved_to_width(grey: np.ndarray, max_width: int) -> np.ndarray:
+    """`grey` halved (INTER_AREA), and halved again, until it is at most `max_width` wide; itself if it already is."""
+    while grey.shape[1] > max_width:
+        grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    return grey
+
+
 def _plain_chessboard(greys: list[np.ndarray]) -> tuple[int, int] | None:
     """(squares across, squares down) of a plain chessboard (no markers) in any of `greys`, or None."""
-    for grey in greys:
-        while grey.shape[1] > _CHESSBOARD_SEARCH_WIDTH:
-            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    for grey in (halved_to_width(g, _CHESSBOARD_SEARCH_WIDTH) for g in greys):
         found, corners, meta = cv2.findChessboardCornersSBWithMeta(grey, (3, 3), cv2.CALIB_CB_LARGER)
         if not found or meta is None:
             continue
