@@ -146,3 +146,30 @@ def test_a_fisheye_warm_start_chooses_as_a_cold_one_without_opencvs_basin_search
     assert warm.candidates.keys() == cold.candidates.keys()
     for model, score in cold.candidates.items():
         assert warm.candidates[model] == pytest.approx(score, rel=1e-4)
+
+
+def test_a_warm_rational_solve_makes_no_pinhole_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The robust solve's later rounds and the halves' second solves start from the solve before.
+    # A rational solve's fallback start (a cold pinhole solve, several times the warm solve's cost)
+    # is made only when the warm start does not fit; the result is the warm start's either way.
+    import cv2
+
+    from calibcoach.app.solve.calibrate import solve
+
+    views = views_of("wide720", 3, n=20)
+    cold = solve(views, SIZE, "rational")
+    calls: list[int] = []
+    real_calibrate = cv2.calibrateCamera
+
+    def counting(*args, **kwargs):
+        calls.append(kwargs.get("flags", 0))
+        return real_calibrate(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "calibrateCamera", counting)
+    warm = solve(views, SIZE, "rational", initial=cold.camera)
+    assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [True]  # the warm start alone
+    assert warm.rms_px == pytest.approx(cold.rms_px, rel=1e-6)
+    np.testing.assert_allclose(warm.camera.camera_matrix, cold.camera.camera_matrix, rtol=1e-6)
+    calls.clear()
+    solve(views, SIZE, "rational")  # cold: the pinhole start first, then the rational solve from it
+    assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [False, True]
