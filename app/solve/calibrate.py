@@ -62,8 +62,32 @@ class RawSolution:
         self.tvecs = tvecs  # (V, 3) float64
 
 
+class ColdPinhole:
+    """The pinhole solve of one set of views from OpenCV's own start, made once for every solve that needs it.
+
+    The model choice solves each half of the views with every candidate: the pinhole candidate is
+    this solve, and the rational one starts from it (`_starts`). Made lazily, on the first call;
+    raises the solve's CalibrationError on every call when it failed.
+    """
+
+    def __init__(self, views: Sequence[View], image_size: tuple[int, int]) -> None:
+        self.views, self.image_size = views, image_size
+        self._made: RawSolution | CalibrationError | None = None
+
+    def __call__(self) -> RawSolution:
+        if self._made is None:
+            try:
+                self._made = _solve_from(self.views, self.image_size, "pinhole", None)
+            except CalibrationError as exc:
+                self._made = exc
+        if isinstance(self._made, CalibrationError):
+            raise self._made
+        return self._made
+
+
 def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, initial: CameraModel | None = None,
-          reduced: bool = False, seed_hfov_deg: float | None = None, basin_only: bool = False) -> RawSolution:
+          reduced: bool = False, seed_hfov_deg: float | None = None, basin_only: bool = False,
+          cold_pinhole: ColdPinhole | None = None) -> RawSolution:
     """Solve intrinsics and per-view poses for `model` from `views` (each with >= 6 corners).
 
     `reduced` solves a well-conditioned subset for the first frames of a capture: one focal length,
@@ -74,6 +98,9 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
     bench/bootstrap_seeds.py sweeps it). `basin_only`: a reduced fisheye stops after OpenCV's
     first iterations (`_FISHEYE_BASIN_CRITERIA`), enough to say how well the model can fit (its RMS
     within 0.02% of the converged one on a 90 deg webcam's 6-11 views) at a tenth of the time.
+
+    `cold_pinhole`: the cold pinhole solve of these same `views` where the caller keeps one (it is
+    then made once for several solves, with the same result).
 
     Raises:
         CalibrationError: fewer than 3 views, or the solver failed on this data.
@@ -87,9 +114,12 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
         return _solve_reduced(views, image_size, model, seed_hfov_deg)
     if model == "fisheye":
         return _solve_fisheye(views, image_size, initial)
+    cold_pinhole = cold_pinhole or ColdPinhole(views, image_size)
+    if model == "pinhole" and (initial is None or initial.model == "fisheye"):
+        return cold_pinhole()  # OpenCV's own start is the only one
     best: RawSolution | None = None
     failure: CalibrationError | None = None
-    for start in _starts(views, image_size, model, initial):
+    for start in _starts(model, initial, cold_pinhole):
         try:
             sol = _solve_from(views, image_size, model, start)
         except CalibrationError as exc:
@@ -105,8 +135,7 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
     return best
 
 
-def _starts(views: Sequence[View], image_size: tuple[int, int], model: str,
-            initial: CameraModel | None) -> Iterator[CameraModel | None]:
+def _starts(model: str, initial: CameraModel | None, cold_pinhole: ColdPinhole) -> Iterator[CameraModel | None]:
     """Where a pinhole or rational solve starts, best first: the caller's guess (the incremental
     solve), then for the rational model a pinhole solve, then OpenCV's own initialisation (None).
 
@@ -120,7 +149,7 @@ def _starts(views: Sequence[View], image_size: tuple[int, int], model: str,
         yield initial
     if model == "rational":
         try:
-            pinhole = _solve_from(views, image_size, "pinhole", None).camera
+            pinhole = cold_pinhole().camera
         except CalibrationError:
             pass
         else:

@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import cv2
 import numpy as np
 
-from calibcoach.app.solve.calibrate import poses_for_views, reprojection_residuals, solve
+from calibcoach.app.solve.calibrate import ColdPinhole, poses_for_views, reprojection_residuals, solve
 from calibcoach.app.solve.result import ModelChoice, View
 from calibcoach.drivers.errors import CalibrationError
 from calibcoach.drivers.lens import CameraModel
@@ -48,9 +48,13 @@ def held_out_rms(camera: CameraModel, views: Sequence[View]) -> float:
     return float(np.sqrt(np.mean(kept)))
 
 
-def _solve_half(views: Sequence[View], image_size: tuple[int, int], model: str, warm: CameraModel | None = None) -> CameraModel:
-    """Solve one half, drop its clearly inconsistent views (3x the median view RMS) and solve again."""
-    raw = solve(views, image_size, model, initial=_warm_for(model, warm))
+def _solve_half(views: Sequence[View], image_size: tuple[int, int], model: str, warm: CameraModel | None = None,
+                cold_pinhole: ColdPinhole | None = None) -> CameraModel:
+    """Solve one half, drop its clearly inconsistent views (3x the median view RMS) and solve again.
+
+    `cold_pinhole`: the half's pinhole solve from OpenCV's start, kept across the candidates (the
+    pinhole candidate's first solve, and the rational one's start: `calibrate.solve`)."""
+    raw = solve(views, image_size, model, initial=_warm_for(model, warm), cold_pinhole=cold_pinhole)
     res = reprojection_residuals(raw.camera, views, raw.rvecs, raw.tvecs)
     view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in res])
     keep = view_rms <= max(3.0 * float(np.median(view_rms)), 0.5)
@@ -136,9 +140,11 @@ def choose_model(views: Sequence[View], image_size: tuple[int, int], *,
     scores: dict[str, float] = {}
     # The two halves solve on two threads (OpenCV releases the GIL; each solve is single-threaded,
     # so the numbers are the same as one after the other).
+    cold_pinholes = [ColdPinhole(half, image_size) for half in (odd, even)]  # each made once, by the first candidate that needs it
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="model-choice") as pool:
         for model in order:
-            halves = [pool.submit(_solve_half, half, image_size, model, warm) for half in (odd, even)]
+            halves = [pool.submit(_solve_half, half, image_size, model, warm, cold)
+                      for half, cold in zip((odd, even), cold_pinholes, strict=True)]
             try:
                 a, b = (h.result() for h in halves)
             except CalibrationError:

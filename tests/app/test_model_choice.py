@@ -173,3 +173,26 @@ def test_a_warm_rational_solve_makes_no_pinhole_start(monkeypatch: pytest.Monkey
     calls.clear()
     solve(views, SIZE, "rational")  # cold: the pinhole start first, then the rational solve from it
     assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [False, True]
+
+
+def test_each_half_is_solved_cold_as_a_pinhole_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The pinhole candidate's solve of a half is the very solve the rational candidate starts from:
+    # made once per half, the scores are what solving it twice gave.
+    import cv2
+
+    views = views_of("webcam720", 2, n=24)
+    before = choose_model(views, SIZE)
+    cold_pinholes: list[int] = []
+    real_calibrate = cv2.calibrateCamera
+
+    def counting(*args, **kwargs):
+        flags = kwargs.get("flags", 0)
+        if not flags & (cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_USE_INTRINSIC_GUESS):
+            cold_pinholes.append(len(args[0]))
+        return real_calibrate(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "calibrateCamera", counting)
+    again = choose_model(views, SIZE)
+    assert sorted(cold_pinholes) == [12, 12, 24]  # the field of view's solve on all views, then one per half
+    assert again.chosen == before.chosen == "pinhole"
+    assert again.candidates == before.candidates

@@ -27,7 +27,7 @@ def stand_in(monkeypatch, scores: dict[str, float], *, hfov: float = 100.0, fail
     Returns the log of (model, solved-on frame indices, scored-on frame indices)."""
     log = []
 
-    def solve_half(views, image_size, model, warm=None):
+    def solve_half(views, image_size, model, warm=None, cold_pinhole=None):
         if model in failing:
             raise CalibrationError("stand-in failure")
         return (model, tuple(v.frame_index for v in views))
