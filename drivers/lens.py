@@ -97,8 +97,9 @@ class CameraModel:
 
         OpenCV's fixed-point `undistortPoints` diverges near the corners of strongly distorted
         lenses (a real 93 deg webcam, k1 = -0.38, misses its own corner by 144 px), so this inverts
-        the radial profile by bisection on its monotonic branch and polishes with Newton steps on
-        the full model (tangential terms included). OpenCV's answer is still tried first and kept
+        the radial profile on its monotonic branch (`_invert_monotonic`: by bisection, by Newton
+        steps inside the bisection's bracket for the fisheye, which always takes this path) and
+        polishes with Newton steps on the full model (tangential terms included). OpenCV's answer is still tried first and kept
         when it reprojects to within a micropixel: this runs on every frame's corners, and the
         C++ path is ~10x cheaper than the Python bisection for the pixels where it converges.
         """
@@ -112,11 +113,11 @@ class CameraModel:
             with np.errstate(invalid="ignore", over="ignore"):
                 missed = ~(np.all(np.isfinite(rays), axis=1) & np.all(np.abs(self.project(rays) - px) < 1e-6, axis=1))
             if missed.any():  # only the pixels OpenCV did not reach take the slow path
-                rays[missed] = self._unproject_by_bisection(px[missed])
+                rays[missed] = self._unproject_by_inversion(px[missed])
             return rays / np.linalg.norm(rays, axis=1, keepdims=True)
-        return self._unproject_by_bisection(px)
+        return self._unproject_by_inversion(px)
 
-    def _unproject_by_bisection(self, px: np.ndarray) -> np.ndarray:
+    def _unproject_by_inversion(self, px: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit rays by inverting the radial profile (see `unproject`)."""
         K = self.camera_matrix
         yn = (px[:, 1] - K[1, 2]) / K[1, 1]
@@ -125,7 +126,8 @@ class CameraModel:
         if self.model == "fisheye":
             D = self.dist_coeffs
             theta_fold = _fold_of("fisheye", tuple(D))
-            theta = _invert_monotonic(lambda t: _fisheye_theta_d(D, t), np.hypot(xn, yn), theta_fold)
+            theta = _invert_monotonic(lambda t: _fisheye_theta_d(D, t), np.hypot(xn, yn), theta_fold,
+                                      slope=lambda t: _fisheye_theta_d_slope(D, t))
             r_d = np.hypot(xn, yn)
             scale = np.divide(np.sin(theta), r_d, out=np.ones_like(r_d), where=r_d > 1e-12)
             rays = np.stack([xn * scale, yn * scale, np.cos(theta)], axis=1)
@@ -276,6 +278,12 @@ def _fisheye_theta_d(D: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return theta * (1 + D[0] * t2 + D[1] * t2**2 + D[2] * t2**3 + D[3] * t2**4)
 
 
+def _fisheye_theta_d_slope(D: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """d theta_d / d theta of `_fisheye_theta_d`."""
+    t2 = theta * theta
+    return 1 + 3 * D[0] * t2 + 5 * D[1] * t2**2 + 7 * D[2] * t2**3 + 9 * D[3] * t2**4
+
+
 def radial_fold(camera: CameraModel) -> float:
     """Where `camera`'s radial profile stops increasing: beyond it the model folds back on itself.
 
@@ -302,13 +310,40 @@ def _fold_radius(profile, r_max: float = 20.0) -> float:
     return float(r[falling[0]]) if falling.size else r_max
 
 
-def _invert_monotonic(profile, targets: np.ndarray, upper: float) -> np.ndarray:
-    """Solve profile(x) = target for x in [0, upper] by bisection (profile increasing there)."""
+def _invert_monotonic(profile, targets: np.ndarray, upper: float, slope=None) -> np.ndarray:
+    """Solve profile(x) = target for x in [0, upper] (profile increasing there).
+
+    By bisection to 2^-48 of the bracket (far below a nanopixel); where `slope` (the profile's
+    derivative) is given, by Newton steps kept inside the same bracket instead, a step that would
+    leave it bisecting: the same root to ~1e-15 in ~6 steps instead of 48. A fisheye's every
+    unprojection runs this (pose estimates, local views: 743 calls on a 150 deg replay took 2.1 s).
+    """
     lo = np.zeros_like(targets)
     hi = np.full_like(targets, upper)
-    for _ in range(48):  # 2^-48 of the bracket: far below a nanopixel
-        mid = 0.5 * (lo + hi)
-        below = profile(mid) < targets
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    return 0.5 * (lo + hi)
+    if slope is None:
+        for _ in range(48):
+            mid = 0.5 * (lo + hi)
+            below = profile(mid) < targets
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        return 0.5 * (lo + hi)
+    x = np.clip(targets, 0.0, upper)
+    beyond = profile(hi) <= targets  # past the fold: bisection's answer is the bracket's end
+    lo = np.where(beyond, upper, lo)
+    x = np.where(beyond, upper, x)
+    tolerance = upper * 2.0**-48
+    for _ in range(64):
+        value = profile(x) - targets
+        below = value < 0
+        lo = np.where(below, x, lo)
+        hi = np.where(below, hi, x)
+        derivative = slope(x)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            newton = x - value / derivative
+        inside = (derivative > 0) & (newton >= lo) & (newton <= hi)
+        step = np.where(inside, newton, 0.5 * (lo + hi))
+        done = np.abs(step - x) <= tolerance
+        x = step
+        if done.all():
+            break
+    return x

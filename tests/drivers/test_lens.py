@@ -44,6 +44,24 @@ def test_fisheye_unprojects_beyond_ninety_degrees() -> None:
     assert ray[2] < 0  # 122 deg off axis: behind the image plane, still a valid fisheye ray
 
 
+def test_the_fisheye_newton_inverse_finds_the_bisections_angle() -> None:
+    # Newton steps inside the bisection's bracket, and plain bisection, on 200 random Kannala-Brandt
+    # profiles: the same angle wherever the profile rises; past its fold, the fold's angle.
+    from calibcoach.drivers.lens import _fisheye_theta_d, _fisheye_theta_d_slope, _fold_of, _invert_monotonic
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        D = rng.normal(0.0, [0.05, 0.02, 0.01, 0.005])
+        fold = _fold_of("fisheye", tuple(D))
+        top = float(_fisheye_theta_d(D, np.array(fold)))
+        targets = np.concatenate([[0.0], rng.uniform(0.0, 0.999 * top, 300), [1.5 * top]])
+        bisected = _invert_monotonic(lambda t, D=D: _fisheye_theta_d(D, t), targets, fold)
+        newton = _invert_monotonic(lambda t, D=D: _fisheye_theta_d(D, t), targets, fold,
+                                   slope=lambda t, D=D: _fisheye_theta_d_slope(D, t))
+        assert np.max(np.abs(newton - bisected)) < 1e-13
+        assert np.max(np.abs(_fisheye_theta_d(D, newton[:-1]) - targets[:-1])) < 1e-14 * max(top, 1.0)
+
+
 def test_field_of_view_from_fov_guess_round_trips() -> None:
     for model in ("pinhole", "fisheye"):
         camera = CameraModel.from_fov((1280, 720), 100.0, model)
