@@ -10,7 +10,7 @@ beside the scan's threads, and the scan in its own process brought the whole rea
 
 So footage is scanned in a forked child process. The child runs the very generator a replay runs
 in process (`detected_frames`); each frame's pixels (of a colour frame the session only tracks
-or skips, its grey) go through a ring of shared-memory slots (a semaphore counts the free ones,
+or skips, its grey; of one it judges, its colour and the grey the scan made of it) go through a ring of shared-memory slots (a semaphore counts the free ones,
 so the child never runs more than the ring ahead) and the rest of what it saw through a pipe, in
 order. The parent copies the pixels out (0.1 ms at 720p) and frees the slot, so frames it keeps
 (a hold waiting for its judgement) never pin the ring.
@@ -71,6 +71,9 @@ class ChildScan:
     def __init__(self, make_seen: Callable[[], Iterator[Seen]], frame_bytes: int, *,
                  state: Callable[[], Any], apply_state: Callable[[Any], None]) -> None:
         slots = frames_ahead(frame_bytes)
+        # a colour frame's slot holds its grey too (the scan converted it already: the session
+        # judges by the grey, and converting a 1080p frame again took ~5 ms of the session's thread)
+        frame_bytes += frame_bytes // 3
         context = multiprocessing.get_context("fork")
         # OpenCV's own thread pool goes down to one thread here, before the fork: the scan detects on
         # threads of its own beside its decoders, so OpenCV's threads inside each call would only
@@ -100,12 +103,16 @@ class ChildScan:
                                    "killed, out of memory or crashed in OpenCV); run the command again") from None
             kind = message[0]
             if kind == "frame":
-                _kind, slot, shape, (index, timestamp_ns, name, controls), seen, child_state = message
+                _kind, slot, shape, has_grey, (index, timestamp_ns, name, controls), seen, child_state = message
                 size = int(np.prod(shape))
                 image = self._ring[slot, :size].reshape(shape).copy()  # type: ignore[index]
+                grey = self._ring[slot, size:size + size // 3].reshape(shape[:2]).copy() if has_grey else None  # type: ignore[index]
                 self._free.release()
                 self._apply_state(child_state)
-                yield replace(seen, frame=Frame(index, timestamp_ns, image, name, MappingProxyType(controls)))
+                frame = Frame(index, timestamp_ns, image, name, MappingProxyType(controls))
+                if grey is not None:
+                    frame.keep_grey(grey)
+                yield replace(seen, frame=frame)
             elif kind == "end":
                 self._apply_state(message[1])
                 return
@@ -154,17 +161,20 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
     try:
         for count, seen in enumerate(make_seen()):
             image = np.ascontiguousarray(_pixels_for_the_session(seen))
-            if image.nbytes > frame_bytes:
+            grey = seen.frame.grey_made if image.ndim == 3 else None  # converted here for detection or tracking
+            if image.nbytes + (0 if grey is None else grey.nbytes) > frame_bytes:
                 raise ValueError(f"frame {seen.frame.index} is {image.shape}, larger than the source's "
-                                 f"{frame_bytes} bytes a frame")
+                                 f"{frame_bytes * 3 // 4} bytes a frame")
             while not free.acquire(timeout=_POLL_S):
                 if os.getppid() != parent_pid:  # the parent died without ending this process
                     return
             slot = count % slots
             ring[slot, : image.nbytes] = image.reshape(-1)
+            if grey is not None:
+                ring[slot, image.nbytes : image.nbytes + grey.nbytes] = grey.reshape(-1)
             frame = seen.frame
-            sending.send(("frame", slot, image.shape, (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls)),
-                          replace(seen, frame=None), state()))
+            sending.send(("frame", slot, image.shape, grey is not None,
+                          (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls)), replace(seen, frame=None), state()))
         sending.send(("end", state()))
     except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
         try:

@@ -57,6 +57,16 @@ class Frame:
             object.__setattr__(self, "_grey", cv2.cvtColor(self.image, cv2.COLOR_BGR2GRAY))  # frozen: a cache, not state
         return self._grey  # type: ignore[return-value]
 
+    @property
+    def grey_made(self) -> np.ndarray | None:
+        """The grey of a BGR frame once `grey()` has made it (None before, and for a grey frame)."""
+        return self._grey
+
+    def keep_grey(self, grey: np.ndarray) -> None:
+        """Take `grey` as this BGR frame's conversion, made elsewhere from the same pixels (the
+        replay's scan process converts every frame it detects: app/scan_process.py)."""
+        object.__setattr__(self, "_grey", grey)  # frozen: a cache, not state
+
 
 @dataclass(frozen=True, slots=True)
 class SourceInfo:

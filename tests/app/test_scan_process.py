@@ -172,7 +172,8 @@ def test_calibrate_starts_scanning_footage_before_the_session_loads(recordings_d
 
 def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: Path, tmp_path: Path) -> None:
     # Tracked and skipped frames are judged in grey or only counted, so the child sends the grey it
-    # made (a third of the bytes); decided frames keep their colour for previews. The pixels are the
+    # made (a third of the bytes); decided frames keep their colour for previews, and the grey the
+    # child made of them comes along (the session judges in grey). The pixels are the
     # replay's own grey conversion, so the decisions are those of the scan in process.
     from calibcoach.app.scan_stream import ScanStream
 
@@ -187,8 +188,9 @@ def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: 
         assert child.frame.index == here.frame.index and child.tracked_from == here.tracked_from
         if child.tracked_from is not None or child.skipped:
             assert child.frame.image.ndim == 2 and np.array_equal(child.frame.image, here.frame.grey())
-        else:
+        else:  # with the grey the child made of it, so the session does not convert it again
             assert child.frame.image.ndim == 3 and np.array_equal(child.frame.image, here.frame.image)
+            assert child.frame.grey_made is not None and np.array_equal(child.frame.grey_made, here.frame.grey())
         assert np.array_equal(child.detection.corners_px, here.detection.corners_px)
     colour_decisions = _decisions(recordings_dir, folder, in_child=True)
     assert colour_decisions == _decisions(recordings_dir, folder, in_child=False)  # frames, corners, decisions, counts
