@@ -20,7 +20,7 @@ import numpy as np
 from calibcoach.app.session_types import SessionResult
 from calibcoach.app.solve.calibrate import solve
 from calibcoach.app.solve.information import marginal_information
-from calibcoach.app.solve.model_choice import choose_model
+from calibcoach.app.solve.model_choice import choose_model, likely_model
 from calibcoach.app.solve.next_view import fill_from_reserve
 from calibcoach.app.solve.residual_structure import residual_structure
 from calibcoach.app.solve.result import Calibration, ModelChoice, View
@@ -45,6 +45,11 @@ MIN_VIEWS_FOR_INCREMENTAL_SOLVE = 6
 # the method's boundary between ordinary lenses (5-term Brown-Conrady) and wide ones, whose
 # checker edges curve over the half square the refinement spans.
 ORDINARY_LENS_FOV_DEG = 90.0
+# The capture's own lens names the likely model before the model choice does (`finish`) only when
+# this much wider or narrower would name the same: its field of view and the model choice's
+# estimate, from other solves of other views, differ by a few degrees (see the bench note in
+# bench/results/replay_speed.md); a guess that misses costs a solve's CPU, never its result.
+_FOV_GUESS_MARGIN_DEG = 5.0
 
 if TYPE_CHECKING:
     from calibcoach.app.session_types import SessionSettings
@@ -177,18 +182,28 @@ class SessionFinish:
         def solve_with(views: Sequence[View], model: str) -> Calibration:
             return robust_calibrate(views, self.image_size, model, initial=self.camera if self.camera.model == model else None)
 
-        # The robust solve of the likeliest model starts as soon as the field of view names it and
+        # The robust solve of the likeliest model starts as soon as a field of view names it and
         # runs beside the model choice's cross-validation (OpenCV releases the GIL): its inputs do
-        # not depend on the choice, so the result is the same as solving after it. Where another
-        # model is chosen, it is left to finish unread and the chosen one solved here.
-        ahead: dict[str, Future[Calibration]] = {}  # the likely model -> its solve, once choose_model names it
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="solve-ahead")
+        # not depend on the choice, so the result is the same as solving after it. The capture's
+        # own lens names it first, unless its field of view lies within a few degrees of a
+        # boundary between models (the model choice's field-of-view solves take 0.1-0.5 s before
+        # they name one); where the model choice names another, that one starts beside it. Where
+        # another model is chosen, a solve started is left to finish unread and the chosen one
+        # solved here.
+        ahead: dict[str, Future[Calibration]] = {}  # the likely model -> its solve
+        pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="solve-ahead")
 
         def start(model: str) -> None:
-            ahead[model] = pool.submit(solve_with, offered_views, model)
+            if model not in ahead:
+                ahead[model] = pool.submit(solve_with, offered_views, model)
 
         try:
             if self.settings.model == "auto":
+                live_fov = self.camera.field_of_view_deg()[0]
+                guesses = {likely_model(fov, len(choice_views)) for fov in (live_fov - _FOV_GUESS_MARGIN_DEG,
+                                                                          live_fov + _FOV_GUESS_MARGIN_DEG)}
+                if np.isfinite(live_fov) and len(guesses) == 1:
+                    start(guesses.pop())
                 # On the frames the budget of the live selection holds (distinct poses, then repeats of every
                 # pose alike up to `max_frames`), as before repeats could fill 400: on the distinct poses
                 # alone (~20 at a wide lens) the 8-term rational overfits its halves and a 104 deg rational

@@ -93,6 +93,15 @@ def pinhole_sees_narrow_lens(pinhole_rms_px: float, hfov_deg: float) -> bool:
     return pinhole_rms_px < _PINHOLE_FITS_PX and hfov_deg < _NARROW_DEG
 
 
+def likely_model(hfov_deg: float, n_views: int) -> str:
+    """The model `choose_model` most likely picks for views of a lens this wide: the simplest
+    candidate, which wins whenever it is within the margin of the best (too few views to
+    cross-validate: the field of view's own choice)."""
+    if n_views < MIN_VIEWS_FOR_CROSS_VALIDATION:
+        return "fisheye" if hfov_deg >= 120.0 else "pinhole"
+    return candidate_order(hfov_deg)[0]
+
+
 def candidate_order(hfov_deg: float) -> list[str]:
     """Candidates, simplest first for this field of view.
 
@@ -129,7 +138,7 @@ def choose_model(views: Sequence[View], image_size: tuple[int, int], *,
     few = len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION
     by_field_of_view = "fisheye" if hfov >= 120.0 else "pinhole"  # the choice where there is too little to cross-validate
     if on_likely is not None:
-        on_likely(by_field_of_view if few else order[0])
+        on_likely(likely_model(hfov, len(views)))
     if few:
         chosen = by_field_of_view
         return ModelChoice(chosen, {}, (

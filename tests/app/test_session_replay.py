@@ -123,6 +123,41 @@ def test_replay_is_reproducible(recordings_dir: Path) -> None:
     np.testing.assert_array_equal(results[0][1], results[1][1])
 
 
+def test_the_final_solve_starts_from_the_captures_lens_before_the_model_choice_names_it(
+        recordings_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The live lens (70 deg, pinhole) names the likely model: its robust solve is under way before the
+    # model choice's field-of-view solves, and its result is the one a start after them gives.
+    import calibcoach.app.session_finish as session_finish
+    import calibcoach.app.solve.model_choice as model_choice
+
+    source = open_source(recordings_dir / "demo_webcam720_careful")
+    session, _stats = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
+    events: list[str] = []
+    real_solve, real_estimate = session_finish.robust_calibrate, model_choice.estimate_hfov_deg
+
+    def solving(*args, **kwargs):
+        events.append(f"robust {args[2]}")
+        return real_solve(*args, **kwargs)
+
+    def estimating(*args, **kwargs):
+        events.append("field of view")
+        return real_estimate(*args, **kwargs)
+
+    monkeypatch.setattr(session_finish, "robust_calibrate", solving)
+    monkeypatch.setattr(model_choice, "estimate_hfov_deg", estimating)
+    result = session.finish()
+    assert events[0] == "robust pinhole" and events.count("robust pinhole") == 1 and "field of view" in events
+    assert result.model_choice.chosen == "pinhole"
+    events.clear()  # the same capture with no guess from its lens: the same calibration, started later
+    monkeypatch.setattr(session_finish, "_FOV_GUESS_MARGIN_DEG", 1e9)
+    later, _stats = run_replay(open_source(recordings_dir / "demo_webcam720_careful"),
+                               BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
+    unguessed = later.finish()
+    assert events[0] == "field of view"
+    np.testing.assert_array_equal(unguessed.calibration.camera.camera_matrix, result.calibration.camera.camera_matrix)
+    np.testing.assert_array_equal(unguessed.calibration.camera.dist_coeffs, result.calibration.camera.dist_coeffs)
+
+
 def test_a_full_frame_budget_ends_the_replay_early(recordings_dir: Path) -> None:
     # the stop must always be reachable: a full budget ends the capture (the stop on coverage and
     # E at default settings is shown by the closed-loop tests, tests/app/test_guided_loop.py)
