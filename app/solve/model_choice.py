@@ -97,9 +97,12 @@ def likely_model(hfov_deg: float, n_views: int) -> str:
     """The model `choose_model` most likely picks for views of a lens this wide: the simplest
     candidate, which wins whenever it is within the margin of the best (too few views to
     cross-validate: the field of view's own choice)."""
-    if n_views < MIN_VIEWS_FOR_CROSS_VALIDATION:
-        return "fisheye" if hfov_deg >= 120.0 else "pinhole"
-    return candidate_order(hfov_deg)[0]
+    return _by_field_of_view(hfov_deg) if n_views < MIN_VIEWS_FOR_CROSS_VALIDATION else candidate_order(hfov_deg)[0]
+
+
+def _by_field_of_view(hfov_deg: float) -> str:
+    """The choice where there is too little to cross-validate (fewer parameters are safer on little data)."""
+    return "fisheye" if hfov_deg >= 120.0 else "pinhole"
 
 
 def candidate_order(hfov_deg: float) -> list[str]:
@@ -136,7 +139,7 @@ def choose_model(views: Sequence[View], image_size: tuple[int, int], *,
     hfov = estimate_hfov_deg(views, image_size, warm=warm)
     order = candidate_order(hfov)
     few = len(views) < MIN_VIEWS_FOR_CROSS_VALIDATION
-    by_field_of_view = "fisheye" if hfov >= 120.0 else "pinhole"  # the choice where there is too little to cross-validate
+    by_field_of_view = _by_field_of_view(hfov)
     if on_likely is not None:
         on_likely(likely_model(hfov, len(views)))
     if few:
