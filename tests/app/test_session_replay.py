@@ -127,6 +127,8 @@ def test_the_final_solve_starts_from_the_captures_lens_before_the_model_choice_n
         recordings_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # The live lens (70 deg, pinhole) names the likely model: its robust solve is under way before the
     # model choice's field-of-view solves, and its result is the one a start after them gives.
+    import threading
+
     import calibcoach.app.session_finish as session_finish
     import calibcoach.app.solve.model_choice as model_choice
 
@@ -134,21 +136,31 @@ def test_the_final_solve_starts_from_the_captures_lens_before_the_model_choice_n
     session, _stats = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
     events: list[str] = []
     real_solve, real_estimate = session_finish.robust_calibrate, model_choice.estimate_hfov_deg
+    solving_started = threading.Event()
 
     def solving(*args, **kwargs):
         events.append(f"robust {args[2]}")
+        solving_started.set()
         return real_solve(*args, **kwargs)
+
+    def estimating_after_the_start(*args, **kwargs):
+        # the solve runs on a pool thread: submitted before this call, it starts within the wait;
+        # submitted only once the estimate names the model, it cannot
+        events.append("field of view, solve started" if solving_started.wait(timeout=30.0) else "field of view, no solve")
+        return real_estimate(*args, **kwargs)
+
+    monkeypatch.setattr(session_finish, "robust_calibrate", solving)
+    monkeypatch.setattr(model_choice, "estimate_hfov_deg", estimating_after_the_start)
+    result = session.finish()
+    assert "field of view, solve started" in events and events.count("robust pinhole") == 1
+    assert result.model_choice.chosen == "pinhole"
+    events.clear()  # the same capture with no guess from its lens: the same calibration, started later
 
     def estimating(*args, **kwargs):
         events.append("field of view")
         return real_estimate(*args, **kwargs)
 
-    monkeypatch.setattr(session_finish, "robust_calibrate", solving)
     monkeypatch.setattr(model_choice, "estimate_hfov_deg", estimating)
-    result = session.finish()
-    assert events[0] == "robust pinhole" and events.count("robust pinhole") == 1 and "field of view" in events
-    assert result.model_choice.chosen == "pinhole"
-    events.clear()  # the same capture with no guess from its lens: the same calibration, started later
     monkeypatch.setattr(session_finish, "_FOV_GUESS_MARGIN_DEG", 1e9)
     later, _stats = run_replay(open_source(recordings_dir / "demo_webcam720_careful"),
                                BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
