@@ -115,13 +115,11 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
     if model == "fisheye":
         return _solve_fisheye(views, image_size, initial)
     cold_pinhole = cold_pinhole or ColdPinhole(views, image_size)
-    if model == "pinhole" and (initial is None or initial.model == "fisheye"):
-        return cold_pinhole()  # OpenCV's own start is the only one
     best: RawSolution | None = None
     failure: CalibrationError | None = None
     for start in _starts(model, initial, cold_pinhole):
-        try:
-            sol = _solve_from(views, image_size, model, start)
+        try:  # a pinhole from OpenCV's own start is the cold pinhole itself: made once
+            sol = cold_pinhole() if model == "pinhole" and start is None else _solve_from(views, image_size, model, start)
         except CalibrationError as exc:
             failure = exc
             continue
