@@ -208,7 +208,10 @@ class Assistant:
     def flush(self) -> Step | None:
         """Decide the frame still held for lookahead (the source ended); None when there is none."""
         held, self._held = self._held, None
-        return None if held is None or self.session.done else self._decide(held, following=None)
+        step = None if held is None or self.session.done else self._decide(held, following=None)
+        self.board_watch.settle()  # a diagnosis still running: its answer is the capture's end's finding
+        self.session.board_mismatch = self.board_watch.finding
+        return step
 
     def _progress(self) -> Progress:
         p = self.session.progress()

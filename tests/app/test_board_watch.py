@@ -4,6 +4,8 @@ real detection on rendered boards, and the live command on a mirrored folder (th
 from __future__ import annotations
 
 import json
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -12,7 +14,7 @@ import pytest
 from _boards import board_photo
 
 from calibcoach.app import board_watch, session_finish
-from calibcoach.app.board_watch import CHECK_EVERY, BoardWatch
+from calibcoach.app.board_watch import ANSWER_AFTER, CHECK_EVERY, BoardWatch
 from calibcoach.app.cli import main
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
@@ -34,14 +36,15 @@ def steps(images: list[np.ndarray]) -> tuple[BoardWatch, list[str]]:
 
 def test_a_mirrored_camera_is_named_once_enough_frames_came_without_the_board() -> None:
     mirrored = cv2.flip(board_photo(BoardSpec()), 1)
-    watch, hints = steps([mirrored] * (CHECK_EVERY + 5))
-    assert hints[: CHECK_EVERY - 1] == [""] * (CHECK_EVERY - 1)  # not while a board may still be coming into view
-    assert all("mirrored left to right" in h and "ffmpeg -vf hflip" in h for h in hints[CHECK_EVERY - 1:])
+    watch, hints = steps([mirrored] * (CHECK_EVERY + ANSWER_AFTER + 5))
+    said_at = CHECK_EVERY + ANSWER_AFTER - 1  # diagnosed at the 45th frame, its answer taken 30 frames later
+    assert hints[:said_at] == [""] * said_at  # not while a board may still be coming into view
+    assert all("mirrored left to right" in h and "ffmpeg -vf hflip" in h for h in hints[said_at:])
     assert watch.checks == 1  # said once, then kept: no second diagnosis
 
 
 def test_a_smaller_print_than_configured_is_said_to_be_some_other_board() -> None:
-    _watch, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + 1))
+    _watch, hints = steps([board_photo(BoardSpec(squares_x=5, squares_y=7))] * (CHECK_EVERY + ANSWER_AFTER))
     assert "no corners match a 8x11 squares" in hints[-1] and "--squares 5x7" in hints[-1]
 
 
@@ -68,8 +71,8 @@ def test_a_mirrored_board_shown_late_is_named_at_the_next_diagnosis() -> None:
     frames since the last."""
     empty = np.full((720, 1280), 128, np.uint8)
     mirrored = cv2.flip(board_photo(BoardSpec()), 1)
-    named_at = CHECK_EVERY + 2 * CHECK_EVERY  # the second diagnosis
-    watch, hints = steps([empty] * (CHECK_EVERY + 10) + [mirrored] * (2 * CHECK_EVERY))
+    named_at = CHECK_EVERY + 2 * CHECK_EVERY + ANSWER_AFTER  # the second diagnosis's answer
+    watch, hints = steps([empty] * (CHECK_EVERY + 10) + [mirrored] * (2 * CHECK_EVERY + ANSWER_AFTER))
     assert watch.checks == 2
     assert set(hints[: named_at - 1]) == {""} and "mirrored" in hints[named_at - 1] and "mirrored" in hints[-1]
 
@@ -80,7 +83,7 @@ def test_a_4k_camera_is_diagnosed_on_halved_frames(monkeypatch: pytest.MonkeyPat
     real = board_watch.diagnose_board_mismatch
     monkeypatch.setattr(board_watch, "diagnose_board_mismatch",
                         lambda spec, greys, **k: widths.extend(g.shape[1] for g in greys) or real(spec, greys, **k))
-    watch, hints = steps([mirrored] * CHECK_EVERY)
+    watch, hints = steps([mirrored] * (CHECK_EVERY + ANSWER_AFTER))
     assert widths == [1920] * 3 and "mirrored left to right" in hints[-1]
 
 
@@ -90,6 +93,51 @@ def test_nothing_is_said_when_the_board_turns_up_and_watching_stops_for_good() -
     watch, hints = steps([empty] * (CHECK_EVERY + 1) + [right] * 3 + [empty] * (2 * CHECK_EVERY + 2))
     assert set(hints) == {""}
     assert watch.checks == 1  # the empty scene was diagnosed once (nothing board-like); none after the board
+
+
+def test_the_diagnosis_runs_beside_the_frames_and_is_answered_at_a_fixed_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The frame loop goes on while a diagnosis runs (it stalled the live preview 0.25-1 s at each check),
+    and its answer is taken ANSWER_AFTER frames later however long it took: the same frame live and in a
+    replay. A diagnosis slower than that makes the loop wait there, not skip it."""
+    mirrored = cv2.flip(board_photo(BoardSpec()), 1)
+    real = board_watch.diagnose_board_mismatch
+    released = threading.Event()
+    ran_beside: list[bool] = []
+
+    def held_until_released(*args, **kwargs):
+        ran_beside.append(released.wait(timeout=10.0))  # in the frame loop it would wait here for nothing
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(board_watch, "diagnose_board_mismatch", held_until_released)
+    watch, detection = BoardWatch(SelectorSettings().min_corners), CharucoBoardDetector(BoardSpec()).detect(mirrored)
+    hints = []
+    for i in range(CHECK_EVERY + ANSWER_AFTER + 2):
+        if i == CHECK_EVERY + 10:
+            released.set()  # ten frames after the diagnosis started
+        hints.append(watch.see(Frame(i, i * 33_333_333, mirrored), detection, BoardSpec()))
+    assert ran_beside == [True]
+    said_at = CHECK_EVERY + ANSWER_AFTER - 1
+    assert set(hints[:said_at]) == {""} and all("mirrored" in h for h in hints[said_at:])
+
+    def slow(*args, **kwargs):
+        time.sleep(0.5)  # longer than the 30 frames take here
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(board_watch, "diagnose_board_mismatch", slow)
+    _watch, slow_hints = steps([mirrored] * (CHECK_EVERY + ANSWER_AFTER + 2))
+    assert slow_hints == hints
+
+
+def test_a_board_shown_while_a_diagnosis_runs_is_never_called_another(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mirrored frames' diagnosis is still to be answered when the configured board turns up: its
+    answer is not taken, and nothing is said; a capture ending before the answer's frame takes it then."""
+    mirrored, right = cv2.flip(board_photo(BoardSpec()), 1), board_photo(BoardSpec())
+    watch, hints = steps([mirrored] * (CHECK_EVERY + 5) + [right] * 3)
+    assert watch.checks == 1 and set(hints) == {""} and watch.finding is None
+    watch, hints = steps([mirrored] * (CHECK_EVERY + 5))
+    assert set(hints) == {""} and watch.finding is None
+    watch.settle()  # the capture's end (Assistant.flush)
+    assert "mirrored left to right" in str(watch.finding) and "mirrored" in watch.hint
 
 
 def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -107,7 +155,7 @@ def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tm
     greys = [cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
              for path in sorted((recordings_dir / "demo_webcam720_careful" / "frames").glob("*.png"))]
     showing = [grey for grey in greys if detector.detect(grey).corner_count >= 20]  # 42 of the 120 frames
-    for i in range(CHECK_EVERY + 25):  # mirrored, the first ones played twice
+    for i in range(CHECK_EVERY + ANSWER_AFTER + 25):  # mirrored, the first ones played twice
         cv2.imwrite(str(folder / f"{i:04d}.png"), cv2.flip(showing[i % len(showing)], 1))
     steps_path = tmp_path / "steps.jsonl"
     code = main(["live", "--source", str(folder), "--out", str(tmp_path / "o"), "--no-viewer", "--speed", "0.35",
@@ -115,7 +163,8 @@ def test_live_says_the_stream_is_mirrored_while_it_runs(recordings_dir: Path, tm
     assert code == 2  # and the capture's end says it again, as an error
     lines = [json.loads(line) for line in steps_path.read_text().splitlines()]
     hinted = [i for i, s in enumerate(lines) if "mirrored left to right" in s["guidance"]["hint"]]
-    assert len(lines) > CHECK_EVERY and hinted == list(range(CHECK_EVERY - 1, len(lines)))  # from the first diagnosis on
+    said_at = CHECK_EVERY + ANSWER_AFTER - 1
+    assert len(lines) > said_at and hinted == list(range(said_at, len(lines)))  # from the first diagnosis's answer on
     said = [line for line in capsys.readouterr().err.splitlines() if "mirrored left to right" in line]
     assert said[0].startswith("calibcoach: No corners of the configured board yet: the images are mirrored")
     assert said[-1].startswith("calibcoach: error: the images are mirrored left to right")
