@@ -37,6 +37,26 @@ def preview_jpeg(image: np.ndarray) -> bytes | None:
     h, w = image.shape[:2]
     factor = preview_factor(w)
     preview = image if factor == 1 else cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    return _encoded(preview)
+
+
+# libjpeg decodes a JPEG shrunk by 2, 4 or 8 in its DCT: the preview of an MJPG frame without decoding
+# all of it (1080p: 4.0 ms instead of 9.4 ms and a resize)
+_REDUCED_COLOUR = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
+
+
+def frame_preview_jpeg(frame: Frame) -> bytes | None:
+    """The preview of a frame as JPEG bytes, in colour where the frame has it (`Frame.colour`)."""
+    w, h = frame.image_size
+    factor = preview_factor(w)
+    if frame.encoded is not None and factor in _REDUCED_COLOUR:
+        small = cv2.imdecode(np.frombuffer(frame.encoded, np.uint8), _REDUCED_COLOUR[factor] | cv2.IMREAD_IGNORE_ORIENTATION)
+        if small is not None and small.shape[:2] == (h // factor, w // factor):  # libjpeg rounds a partial block up
+            return _encoded(small)
+    return preview_jpeg(frame.colour())
+
+
+def _encoded(preview: np.ndarray) -> bytes | None:
     ok, jpeg = cv2.imencode(".jpg", preview, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])  # BGR or grey in, as OpenCV has it
     return jpeg.tobytes() if ok else None
 
@@ -45,8 +65,8 @@ def frame_for_log(frame: Frame) -> tuple[Frame, bytes | None]:
     """The frame as a deferred logger holds it: its size, name and controls without its pixels
     (1-6 MB), and its preview JPEG (~50 KB). Controls become a plain dict, which pickles."""
     w, h = frame.image_size
-    pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8), controls=dict(frame.controls))
-    return pixelless, preview_jpeg(frame.image)
+    pixelless = replace(frame, image=np.empty((h, w, 0), np.uint8), controls=dict(frame.controls), encoded=None)
+    return pixelless, frame_preview_jpeg(frame)
 
 
 def outcome_for_log(outcome: FrameOutcome) -> FrameOutcome:

@@ -103,13 +103,13 @@ class ChildScan:
                                    "killed, out of memory or crashed in OpenCV); run the command again") from None
             kind = message[0]
             if kind == "frame":
-                _kind, slot, shape, has_grey, (index, timestamp_ns, name, controls), seen, child_state = message
+                _kind, slot, shape, has_grey, (index, timestamp_ns, name, controls, encoded), seen, child_state = message
                 size = int(np.prod(shape))
                 image = self._ring[slot, :size].reshape(shape).copy()  # type: ignore[index]
                 grey = self._ring[slot, size:size + size // 3].reshape(shape[:2]).copy() if has_grey else None  # type: ignore[index]
                 self._free.release()
                 self._apply_state(child_state)
-                frame = Frame(index, timestamp_ns, image, name, MappingProxyType(controls))
+                frame = Frame(index, timestamp_ns, image, name, MappingProxyType(controls), encoded=encoded)
                 if grey is not None:
                     frame.keep_grey(grey)
                 yield replace(seen, frame=frame)
@@ -146,7 +146,8 @@ def _pixels_for_the_session(seen: Seen) -> np.ndarray:
     and only counts a frame skipped in transit; neither is logged or previewed, so of a colour
     frame the grey conversion the scan already made crosses (a third of the bytes, and no second
     conversion in the replay). Frames the session decides keep their colour (previews, the check
-    image). The decisions are the same: the replay would convert those frames to exactly this grey.
+    image): a BGR frame's pixels, or an MJPG frame's JPEG beside its grey (`Frame.encoded`). The
+    decisions are the same: the replay would convert those frames to exactly this grey.
     """
     if seen.skipped or seen.tracked_from is not None:
         return seen.frame.grey()
@@ -173,8 +174,11 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
             if grey is not None:
                 ring[slot, image.nbytes : image.nbytes + grey.nbytes] = grey.reshape(-1)
             frame = seen.frame
+            # an MJPG frame's JPEG goes along where the session may show the frame in colour (see above)
+            encoded = None if seen.skipped or seen.tracked_from is not None else frame.encoded
             sending.send(("frame", slot, image.shape, grey is not None,
-                          (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls)), replace(seen, frame=None), state()))
+                          (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls), encoded),
+                          replace(seen, frame=None), state()))
         sending.send(("end", state()))
     except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
         try:

@@ -117,7 +117,7 @@ class CalibrationSession(SessionFinish):
         self.noise_px: float | None = None  # corner noise per coordinate from the latest incremental solve
         self.frames_seen = 0
         self._previous: tuple[Detection, int] | tuple[None, None] = (None, None)
-        self._check_image: tuple[int, np.ndarray] | None = None
+        self._check_image: tuple[int, Frame] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self.board_mismatch: BoardError | None = None  # ... or what the capture's board watch found (app/board_watch.py)
         self._reserve: list[tuple[View, float]] = []  # usable frames not taken at the time, with their quality weight
@@ -249,7 +249,7 @@ class CalibrationSession(SessionFinish):
             self.selector.commit(frame.index, detection, pose, contribution, blur_px=blur)
             self.views.append(self._view(frame, detection, edges))
             if self._check_image is None or detection.corner_count > self._check_image[0]:
-                self._check_image = (detection.corner_count, frame.image)
+                self._check_image = (detection.corner_count, frame)  # its colour is decoded for the picture at the end
             self._update_after_accept()
         self.guide.observe(frame.timestamp_ns, pose, accepted=len(self.views))
         return self._outcome(frame, detection, pose, decision, blur, motion)

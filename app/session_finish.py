@@ -110,7 +110,7 @@ class SessionFinish:
     _repeats: list[View]
     _information: np.ndarray | None
     _error_weight: np.ndarray | None
-    _check_image: tuple[int, np.ndarray] | None
+    _check_image: tuple[int, Frame] | None
     _samples: list[np.ndarray]
     board_mismatch: BoardError | None
     _final_poses: tuple[CameraModel, dict[int, BoardPose | None]] | None = None  # see _poses_under
@@ -270,7 +270,7 @@ class SessionFinish:
             board=self.board,
             rejections=dict(self.selector.counts),
             frames_seen=self.frames_seen,
-            check_image=None if self._check_image is None else self._check_image[1],
+            check_image=None if self._check_image is None else self._check_image[1].colour(),
             noise_px=noise,
             target_px=self.settings.error_target_px or error_target_px(noise, self.image_size),
             stop_reason=self.stop_reason,

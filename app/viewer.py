@@ -37,7 +37,7 @@ import numpy as np
 import rerun as rr
 
 from calibcoach.app import viewer_blueprint as paths
-from calibcoach.app.preview import preview_factor, preview_jpeg
+from calibcoach.app.preview import frame_preview_jpeg, preview_factor
 from calibcoach.app.session import FrameOutcome, SessionResult
 from calibcoach.coverage.grid import DISTANCE_CELLS, TILT_CELLS, CoverageMap
 from calibcoach.coverage.guidance import Target
@@ -227,7 +227,7 @@ class Viewer:
         self._log_image(frame)
 
     def _log_image(self, frame: Frame, jpeg: bytes | None = None) -> None:
-        jpeg = preview_jpeg(frame.image) if jpeg is None else jpeg
+        jpeg = frame_preview_jpeg(frame) if jpeg is None else jpeg
         if jpeg is not None:
             self.recording.log(paths.IMAGE, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
 

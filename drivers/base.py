@@ -38,6 +38,9 @@ class Frame:
     image: np.ndarray  # (H, W) uint8 grey or (H, W, 3) uint8 BGR
     name: str = ""  # file name for folder sources, "" otherwise
     controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))  # focus etc.
+    # The JPEG a source delivered `image` from when it decoded only the luminance (an MJPG video:
+    # drivers/avi_mjpg.py): `image` is then that grey, and `colour()` decodes the rest on demand.
+    encoded: bytes | None = field(default=None, repr=False, compare=False)
     # the grey image of a BGR frame once converted: a replayed frame is asked for it 2-4 times
     # (thumbnail, detection or tracking, sharpness), 0.4 ms each at 720p
     _grey: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
@@ -46,6 +49,16 @@ class Frame:
     def image_size(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return int(self.image.shape[1]), int(self.image.shape[0])
+
+    def colour(self) -> np.ndarray:
+        """The frame as the camera delivered it: (H, W, 3) BGR decoded from `encoded` where the source
+        kept only its grey in `image` (else `image` itself, grey or BGR)."""
+        if self.encoded is None:
+            return self.image
+        from calibcoach.drivers.avi_mjpg import decode_packet
+
+        colour = decode_packet(np.frombuffer(self.encoded, np.uint8))
+        return self.image if colour is None else colour
 
     def grey(self) -> np.ndarray:
         """The image as (H, W) uint8 grey, converting BGR once (the conversion is kept with the frame)."""

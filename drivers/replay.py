@@ -24,7 +24,7 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
-from calibcoach.drivers.avi_mjpg import MjpgIndex, decode_packet, mjpg_index, read_packet
+from calibcoach.drivers.avi_mjpg import MjpgIndex, decode_packet, decode_packet_grey, mjpg_index, read_packet
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.image_header import header_size
@@ -72,11 +72,14 @@ def open_source(spec: str | Path) -> FrameSource:
 
 
 class VideoFileSource(FrameSource):
-    """Frames of a video file: (H, W, 3) uint8 BGR.
+    """Frames of a video file: (H, W, 3) uint8 BGR, or of a Motion-JPEG AVI their grey (see below).
 
     A Motion-JPEG AVI (what webcams record) is read straight from its container and its JPEGs
-    decoded by libjpeg on two threads (drivers/avi_mjpg.py); any other video by OpenCV's
-    VideoCapture (FFmpeg). A frame that fails to decode costs its index and is reported in
+    decoded by libjpeg on two threads (drivers/avi_mjpg.py), the luminance alone: each frame's
+    `image` is its grey, what detection reads, and `Frame.colour()` decodes the colour from the
+    JPEG it keeps (`Frame.encoded`) for the few frames a person sees (previews, the check picture).
+    Decoding all of every frame and converting it to grey cost a 1080p replay 2.5x the CPU. Any
+    other video is read by OpenCV's VideoCapture (FFmpeg), in colour. A frame that fails to decode costs its index and is reported in
     `skipped`; after `max_consecutive_failures` failures in a row the rest of the file is taken
     to be damaged and reading stops, with one `skipped` entry saying so (a broken tail would
     otherwise be read for ever).
@@ -161,7 +164,7 @@ class VideoFileSource(FrameSource):
         self.skipped = []
         failed: list[int] = []  # indices of the current run of undecodable frames
         with closing(self._unpacked() if self._mjpg is not None else self._captured()) as decoded:
-            for index, image, timestamp_ns in decoded:
+            for index, image, timestamp_ns, encoded in decoded:
                 if image is None:
                     failed.append(index)
                     if len(failed) >= self._max_failures:
@@ -174,30 +177,36 @@ class VideoFileSource(FrameSource):
                     continue
                 self.skipped += [SkippedFrame(i, "", "frame could not be decoded (damaged video data)") for i in failed]
                 failed.clear()
-                yield Frame(index=index, timestamp_ns=timestamp_ns, image=image)
+                yield Frame(index=index, timestamp_ns=timestamp_ns, image=image, encoded=encoded)
         if self._mjpg is not None and self._mjpg.cut_off:
             cut = len(self._mjpg.packets)
             self.skipped.append(SkippedFrame(cut, "", (
                 f"the file ends inside frame {cut}, so it was cut off (copied or recorded incompletely); "
                 "the frames before it are read")))
 
-    def _unpacked(self) -> Iterator[tuple[int, np.ndarray | None, int]]:
-        """(index, BGR image or None, timestamp) of every MJPG frame, decoded ahead on worker threads."""
+    def _unpacked(self) -> Iterator[tuple[int, np.ndarray | None, int, bytes | None]]:
+        """(index, grey image or None, timestamp, the frame's JPEG) of every MJPG frame, decoded ahead on
+        worker threads: the luminance alone (`decode_packet_grey`), the colour on demand (`Frame.colour`)."""
         index = self._mjpg
         assert index is not None
         period_ns = 1e9 / (index.fps or _DEFAULT_FPS)
-        ahead = frames_ahead(3 * index.image_size[0] * index.image_size[1])
+        ahead = frames_ahead(index.image_size[0] * index.image_size[1])
         fd = os.open(self.path, os.O_RDONLY)
-        images = _decoded_ahead(index.packets, lambda packet: decode_packet(read_packet(fd, packet)), ahead=ahead)
+
+        def decode(packet: tuple[int, int]) -> tuple[np.ndarray | None, bytes]:
+            data = read_packet(fd, packet)
+            return decode_packet_grey(data), data.tobytes()
+
+        images = _decoded_ahead(index.packets, decode, ahead=ahead)
         try:
-            for i, image in enumerate(images):
-                yield i, image, round(i * period_ns)
+            for i, (image, encoded) in enumerate(images):
+                yield i, image, round(i * period_ns), encoded
         finally:
             images.close()  # its decodes finish before the file they read is closed
             os.close(fd)
 
-    def _captured(self) -> Iterator[tuple[int, np.ndarray | None, int]]:
-        """(index, BGR image or None, timestamp) of every frame VideoCapture reads, up to the end it announces."""
+    def _captured(self) -> Iterator[tuple[int, np.ndarray | None, int, None]]:
+        """(index, BGR image or None, timestamp, None) of every frame VideoCapture reads, up to the end it announces."""
         capture = self._capture = self._open()
         period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
         index, previous_ns = 0, -1
@@ -207,10 +216,10 @@ class VideoFileSource(FrameSource):
                 if not ok or image is None:
                     if self._frame_count is not None and index >= self._frame_count:
                         return  # the end the header announced
-                    yield index, None, 0
+                    yield index, None, 0, None
                 else:
                     timestamp_ns = self._timestamp_ns(capture, index, previous_ns, period_ns)
-                    yield index, image, timestamp_ns
+                    yield index, image, timestamp_ns, None
                     previous_ns = timestamp_ns
                 index += 1
         finally:

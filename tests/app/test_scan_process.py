@@ -16,7 +16,7 @@ from calibcoach.app.scan_process import ChildScan, fork_available
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.select import SelectorSettings
-from calibcoach.drivers.replay import ImageFolderSource
+from calibcoach.drivers.replay import ImageFolderSource, open_source
 
 pytestmark = pytest.mark.skipif(not fork_available(), reason="the scan runs in a child process only where fork exists")
 
@@ -194,3 +194,23 @@ def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: 
         assert np.array_equal(child.detection.corners_px, here.detection.corners_px)
     colour_decisions = _decisions(recordings_dir, folder, in_child=True)
     assert colour_decisions == _decisions(recordings_dir, folder, in_child=False)  # frames, corners, decisions, counts
+
+
+def test_an_mjpg_videos_frames_cross_as_grey_with_their_jpeg(recordings_dir: Path, tmp_path: Path) -> None:
+    """Of an MJPG video only the luminance is decoded (drivers/avi_mjpg.py): the frames the session
+    judges cross from the scan with their JPEG, so what a person sees of them is in colour: the
+    previews it logs and the check picture of the result."""
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (1280, 720))
+    if not writer.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG into .avi")
+    for index in range(40):
+        grey = cv2.imread(str(recordings_dir / "demo_webcam720_careful" / "frames" / f"{index:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        writer.write(cv2.merge([grey, cv2.add(grey, 9), cv2.subtract(grey, 7)]))
+    writer.release()
+    judged: list[tuple[int, bool, int]] = []
+    settings = SessionSettings(selector=SelectorSettings(max_frames=8), stop_when_done=False)
+    session, _stats = run_replay(open_source(path), BoardSpec(), settings,
+                                 on_outcome=lambda o, f: judged.append((f.image.ndim, f.encoded is not None, f.colour().ndim)))
+    assert judged and set(judged) == {(2, True, 3)}
+    assert session.finish().check_image.ndim == 3

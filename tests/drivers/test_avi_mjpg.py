@@ -13,9 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
+from calibcoach.app.preview import frame_preview_jpeg
 from calibcoach.drivers.avi_mjpg import mjpg_index
 from calibcoach.drivers.base import SkippedFrame
-from calibcoach.drivers.replay import VideoFileSource
+from calibcoach.drivers.recording import RecordingWriter
+from calibcoach.drivers.replay import RecordingSource, VideoFileSource
 
 WIDTH, HEIGHT, FPS = 64, 48, 15
 
@@ -93,11 +95,17 @@ def test_frames_match_videocaptures(tmp_path: Path) -> None:
     assert source.info.description == f"video file clip.avi ({WIDTH}x{HEIGHT}, {FPS} fps, 12 frames)"
     assert [f.timestamp_ns for f in frames] == pytest.approx([i * 1e9 / FPS for i in range(12)], abs=1e3)
     for frame, expected in zip(frames, reference, strict=True):
-        assert frame.image.shape == expected.shape and frame.image.dtype == np.uint8
+        # the luminance alone is decoded; the colour on demand, from the JPEG the frame keeps
+        colour = frame.colour()
+        assert frame.image.shape == expected.shape[:2] and colour.shape == expected.shape and colour.dtype == np.uint8
         # libjpeg against FFmpeg: another IDCT and colour rounding, a level or so in the grey the
         # detector reads, a little more in colour at the square's sharp edges; never another picture
         assert np.abs(frame.grey().astype(int) - cv2.cvtColor(expected, cv2.COLOR_BGR2GRAY)).mean() < 1.5
-        assert np.abs(frame.image.astype(int) - expected).mean() < 3.0
+        assert np.abs(colour.astype(int) - expected).mean() < 3.0
+        # the luminance is libjpeg's colour converted to grey but for rounding, and for where the colour
+        # clipped (the saturated square's edges here: up to 6 levels on 1-2% of this small clip's pixels)
+        gaps = np.abs(frame.grey().astype(int) - cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY))
+        assert gaps.mean() < 0.1 and np.mean(gaps > 2) < 0.02
     assert np.abs(frames[0].image.astype(int) - frames[11].image).mean() > 3.0  # the frames themselves differ more
 
 
@@ -115,7 +123,7 @@ def test_jpegs_without_huffman_tables_decode_as_with_them(tmp_path: Path) -> Non
     _, full = _frames(tmp_path / "full.avi")
     _, bare = _frames(tmp_path / "bare.avi")
     assert len(full) == len(bare) == 4
-    assert all(np.array_equal(a.image, b.image) for a, b in zip(full, bare, strict=True))
+    assert all(np.array_equal(a.image, b.image) and np.array_equal(a.colour(), b.colour()) for a, b in zip(full, bare, strict=True))
 
 
 def test_opendml_extension_is_read_after_the_first_riff(tmp_path: Path) -> None:
@@ -125,7 +133,7 @@ def test_opendml_extension_is_read_after_the_first_riff(tmp_path: Path) -> None:
     _, frames = _frames(path)
     expected = [cv2.imdecode(np.frombuffer(_jpeg(i), np.uint8), cv2.IMREAD_COLOR) for i in range(6)]
     assert [f.index for f in frames] == list(range(6))
-    assert all(np.array_equal(f.image, e) for f, e in zip(frames, expected, strict=True))
+    assert all(np.array_equal(f.colour(), e) for f, e in zip(frames, expected, strict=True))
 
 
 def test_a_dropped_frame_or_another_codec_leaves_the_file_to_videocapture(tmp_path: Path) -> None:
@@ -157,3 +165,26 @@ def test_a_file_cut_off_inside_a_frame_keeps_the_frames_before_it(tmp_path: Path
     assert [f.index for f in frames] == list(range(7))
     assert source.skipped == [SkippedFrame(7, "", (
         "the file ends inside frame 7, so it was cut off (copied or recorded incompletely); the frames before it are read"))]
+
+
+def test_what_a_person_sees_of_an_mjpg_frame_is_in_colour(tmp_path: Path) -> None:
+    """Only the grey is decoded for detection; the preview, a recording of the frame and the session's
+    check picture decode its colour from the JPEG it keeps (a grey preview would be a wrong picture)."""
+    size = (1280, 720)
+    y, x = np.mgrid[0:size[1], 0:size[0]]
+    image = np.stack([x % 256, y % 256, (x + y) % 256], axis=2).astype(np.uint8)  # colour everywhere
+    writer = cv2.VideoWriter(str(tmp_path / "colour.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, size)
+    if not writer.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG into .avi")
+    writer.write(image)
+    writer.release()
+    _source, (frame,) = _frames(tmp_path / "colour.avi")
+    assert frame.image.ndim == 2 and frame.encoded is not None
+    preview = cv2.imdecode(np.frombuffer(frame_preview_jpeg(frame), np.uint8), cv2.IMREAD_UNCHANGED)
+    shrunk = cv2.resize(frame.colour(), (640, 360), interpolation=cv2.INTER_AREA)
+    assert preview.shape == (360, 640, 3) and np.abs(preview.astype(int) - shrunk).mean() < 4.0  # libjpeg's DCT shrink
+    with RecordingWriter(tmp_path / "rec", camera_id="file", kind="video", image_size=size, fps=FPS, controls={},
+                         board=None) as recording:
+        recording.write(frame)
+    (recorded,) = list(RecordingSource(tmp_path / "rec"))
+    assert np.array_equal(recorded.image, frame.colour())  # as the camera gave it, not only its grey

@@ -218,7 +218,8 @@ def test_video_round_trip(tmp_path: Path) -> None:
     with source:
         frames = list(source)
     assert [f.index for f in frames] == list(range(12))
-    assert all(f.image.shape == (HEIGHT, WIDTH, 3) and f.image.dtype == np.uint8 for f in frames)
+    # an MJPG AVI's frames are decoded to their grey, their colour on demand (drivers/avi_mjpg.py)
+    assert all(f.image.shape == (HEIGHT, WIDTH) and f.colour().shape == (HEIGHT, WIDTH, 3) for f in frames)
     assert [round(float(f.image.mean())) for f in frames] == pytest.approx([_grey_level(i) for i in range(12)], abs=2)
     assert [f.timestamp_ns for f in frames] == pytest.approx([i * 1e9 / 15 for i in range(12)], abs=1e3)
     assert source.skipped == []
