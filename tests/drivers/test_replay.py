@@ -86,6 +86,18 @@ def test_grey_jpeg_stays_two_dimensional_and_colour_is_bgr(tmp_path: Path) -> No
     assert colour_frame.image[0, 0].tolist() == [0, 0, 200]
 
 
+def test_a_colour_jpegs_luminance_is_decoded_and_its_colour_on_demand(tmp_path: Path) -> None:
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    colour = np.stack([x * 4 % 256, y * 5 % 256, (x + y) * 3 % 256], axis=2).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "a.jpg"), colour, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    _write_image(tmp_path / "b.png", 90)  # a PNG beside it is decoded whole, as before
+    jpeg, png = list(open_source(tmp_path))
+    decoded = cv2.imread(str(tmp_path / "a.jpg"), cv2.IMREAD_COLOR)
+    assert jpeg.image.shape == (HEIGHT, WIDTH) and jpeg.encoded is not None and np.array_equal(jpeg.colour(), decoded)
+    assert np.abs(jpeg.grey().astype(int) - cv2.cvtColor(decoded, cv2.COLOR_BGR2GRAY)).mean() < 0.2  # rounding and clipping
+    assert png.encoded is None and np.array_equal(png.colour(), png.image)
+
+
 def test_corrupt_and_empty_files_are_skipped_with_reasons(tmp_path: Path) -> None:
     _write_image(tmp_path / "img1.png", 10)
     (tmp_path / "img2.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))  # PNG signature, no image
