@@ -198,7 +198,10 @@ class RecordingWriter:
         relative = f"{FRAMES_DIR}/{index:06d}.png"
         final_path = self.folder / relative
         temp_path = final_path.with_name(f".{index:06d}.tmp.png")  # cv2 picks the encoder by suffix
-        if not cv2.imwrite(str(temp_path), frame.colour(), _PNG_PARAMS):  # as the camera gave it, not only the grey an MJPG source decoded
+        # `image`, what the session detected: of a frame an MJPG file or JPEG folder delivered as its
+        # luminance that is the grey, as the replay must detect again (the colour's conversion to grey
+        # differs from the luminance by rounding, and the replay would not reproduce the session)
+        if not cv2.imwrite(str(temp_path), frame.image, _PNG_PARAMS):
             raise SourceError(f"could not write {temp_path}; check free disk space and write permission")
         os.replace(temp_path, final_path)
         entry = {"index": index, "file": relative, "timestamp_ns": int(frame.timestamp_ns),

@@ -168,8 +168,9 @@ def test_a_file_cut_off_inside_a_frame_keeps_the_frames_before_it(tmp_path: Path
 
 
 def test_what_a_person_sees_of_an_mjpg_frame_is_in_colour(tmp_path: Path) -> None:
-    """Only the grey is decoded for detection; the preview, a recording of the frame and the session's
-    check picture decode its colour from the JPEG it keeps (a grey preview would be a wrong picture)."""
+    """Only the grey is decoded for detection; the preview decodes its colour from the JPEG the frame
+    keeps (a grey preview would be a wrong picture). A recording of the frame keeps the grey the
+    session detected: its replay must detect the same pixels to reproduce the session."""
     size = (1280, 720)
     y, x = np.mgrid[0:size[1], 0:size[0]]
     image = np.stack([x % 256, y % 256, (x + y) % 256], axis=2).astype(np.uint8)  # colour everywhere
@@ -187,4 +188,4 @@ def test_what_a_person_sees_of_an_mjpg_frame_is_in_colour(tmp_path: Path) -> Non
                          board=None) as recording:
         recording.write(frame)
     (recorded,) = list(RecordingSource(tmp_path / "rec"))
-    assert np.array_equal(recorded.image, frame.colour())  # as the camera gave it, not only its grey
+    assert np.array_equal(recorded.grey(), frame.grey())  # not the colour's conversion, which rounds otherwise
