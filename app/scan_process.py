@@ -10,9 +10,10 @@ beside the scan's threads, and the scan in its own process brought the whole rea
 
 So footage is scanned in a forked child process. The child runs the very generator a replay runs
 in process (`detected_frames`); each frame's pixels (of a colour frame the session only tracks
-or skips, its grey; of one it judges, its colour and the grey the scan made of it) go through a ring of shared-memory slots (a semaphore counts the free ones,
-so the child never runs more than the ring ahead) and the rest of what it saw through a pipe, in
-order. The parent copies the pixels out (0.1 ms at 720p) and frees the slot, so frames it keeps
+or skips, its grey; of one it judges, its colour and the grey the scan made of it; of an MJPG
+frame, its grey, and the JPEG it came from with a frame the session judges) go through a ring of
+shared-memory slots (a semaphore counts the free ones, so the child never runs more than the ring
+ahead) and the rest of what it saw through a pipe, in order. The parent copies the pixels out (0.1 ms at 720p) and frees the slot, so frames it keeps
 (a hold waiting for its judgement) never pin the ring.
 
 State the child learns that the parent needs (the print's settled variant, the scan's counters,

@@ -38,8 +38,9 @@ class Frame:
     image: np.ndarray  # (H, W) uint8 grey or (H, W, 3) uint8 BGR
     name: str = ""  # file name for folder sources, "" otherwise
     controls: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))  # focus etc.
-    # The JPEG a source delivered `image` from when it decoded only the luminance (an MJPG video:
-    # drivers/avi_mjpg.py): `image` is then that grey, and `colour()` decodes the rest on demand.
+    # The JPEG a source delivered `image` from when it decoded only the luminance (an MJPG video,
+    # drivers/avi_mjpg.py; a folder's JPEGs): `image` is then that grey, and `colour()` decodes the
+    # rest on demand.
     encoded: bytes | None = field(default=None, repr=False, compare=False)
     # the grey image of a BGR frame once converted: a replayed frame is asked for it 2-4 times
     # (thumbnail, detection or tracking, sharpness), 0.4 ms each at 720p

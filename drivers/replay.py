@@ -77,10 +77,10 @@ class VideoFileSource(FrameSource):
     A Motion-JPEG AVI (what webcams record) is read straight from its container and its JPEGs
     decoded by libjpeg on two threads (drivers/avi_mjpg.py), the luminance alone: each frame's
     `image` is its grey, what detection reads, and `Frame.colour()` decodes the colour from the
-    JPEG it keeps (`Frame.encoded`) for the few frames a person sees (previews, the check picture).
-    Decoding all of every frame and converting it to grey cost a 1080p replay 2.5x the CPU. Any
-    other video is read by OpenCV's VideoCapture (FFmpeg), in colour. A frame that fails to decode costs its index and is reported in
-    `skipped`; after `max_consecutive_failures` failures in a row the rest of the file is taken
+    JPEG it keeps (`Frame.encoded`) for the few frames a person sees (previews, the check picture):
+    decoding all of every frame and converting it to grey took 2.7x the CPU at 1080p. Any other
+    video is read by OpenCV's VideoCapture (FFmpeg), in colour. A frame that fails to decode costs
+    its index and is reported in `skipped`; after `max_consecutive_failures` failures in a row the rest of the file is taken
     to be damaged and reading stops, with one `skipped` entry saying so (a broken tail would
     otherwise be read for ever).
     """
