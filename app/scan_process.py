@@ -13,8 +13,9 @@ in process (`detected_frames`); each frame's pixels (of a colour frame the sessi
 or skips, its grey; of one it judges, its colour and the grey the scan made of it; of an MJPG
 frame, its grey, and the JPEG it came from with a frame the session judges) go through a ring of
 shared-memory slots (a semaphore counts the free ones, so the child never runs more than the ring
-ahead) and the rest of what it saw through a pipe, in order. The parent copies the pixels out (0.1 ms at 720p) and frees the slot, so frames it keeps
-(a hold waiting for its judgement) never pin the ring.
+ahead) and the rest of what it saw through a pipe, in order. The parent copies the pixels out
+(0.1 ms at 720p) and frees the slot, so frames it keeps (a hold waiting for its judgement) never
+pin the ring.
 
 State the child learns that the parent needs (the print's settled variant, the scan's counters,
 frames the source could not decode) is sent with every frame and handed to `apply_state` before
@@ -150,9 +151,12 @@ def _pixels_for_the_session(seen: Seen) -> np.ndarray:
     image): a BGR frame's pixels, or an MJPG frame's JPEG beside its grey (`Frame.encoded`). The
     decisions are the same: the replay would convert those frames to exactly this grey.
     """
-    if seen.skipped or seen.tracked_from is not None:
-        return seen.frame.grey()
-    return seen.frame.image
+    return seen.frame.image if _judged(seen) else seen.frame.grey()
+
+
+def _judged(seen: Seen) -> bool:
+    """Whether the session judges the frame (and may show it): neither tracked nor skipped in transit."""
+    return not seen.skipped and seen.tracked_from is None
 
 
 def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,
@@ -176,7 +180,7 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
                 ring[slot, image.nbytes : image.nbytes + grey.nbytes] = grey.reshape(-1)
             frame = seen.frame
             # an MJPG frame's JPEG goes along where the session may show the frame in colour (see above)
-            encoded = None if seen.skipped or seen.tracked_from is not None else frame.encoded
+            encoded = frame.encoded if _judged(seen) else None
             sending.send(("frame", slot, image.shape, grey is not None,
                           (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls), encoded),
                           replace(seen, frame=None), state()))

@@ -32,6 +32,7 @@ from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.recording import SESSION_FILE, read_session
 
 T = TypeVar("T")
+D = TypeVar("D")  # what `_decoded_ahead` decodes an item to
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 _VIDEO_EXTENSIONS = (".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")  # for hints only
 _DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
@@ -80,9 +81,9 @@ class VideoFileSource(FrameSource):
     JPEG it keeps (`Frame.encoded`) for the few frames a person sees (previews, the check picture):
     decoding all of every frame and converting it to grey took 2.7x the CPU at 1080p. Any other
     video is read by OpenCV's VideoCapture (FFmpeg), in colour. A frame that fails to decode costs
-    its index and is reported in `skipped`; after `max_consecutive_failures` failures in a row the rest of the file is taken
-    to be damaged and reading stops, with one `skipped` entry saying so (a broken tail would
-    otherwise be read for ever).
+    its index and is reported in `skipped`; after `max_consecutive_failures` failures in a row the
+    rest of the file is taken to be damaged and reading stops, with one `skipped` entry saying so
+    (a broken tail would otherwise be read for ever).
     """
 
     def __init__(self, path: str | Path, *, max_consecutive_failures: int = 25) -> None:
@@ -406,8 +407,7 @@ def _natural_key(path: Path) -> tuple[tuple[tuple[int, int | str], ...], str]:
 _DECODE_WORKERS = 2  # decoding releases the GIL; a 720p PNG takes ~5 ms in OpenCV, ~2.9 ms in png_fast
 
 
-def _decoded_ahead(items: Sequence[T], decode: Callable[[T], np.ndarray | None], *,
-                   ahead: int = 8) -> Iterator[np.ndarray | None]:
+def _decoded_ahead(items: Sequence[T], decode: Callable[[T], D], *, ahead: int = 8) -> Iterator[D]:
     """`decode(item)` of every item (a file, a video frame's place in its file), in order, run on
     worker threads `ahead` items ahead.
 
@@ -437,10 +437,9 @@ def _read_frame_image(path: Path, *, fast_png: bool = False) -> tuple[np.ndarray
         data = np.fromfile(path, np.uint8)
     except OSError:
         return None, None
-    if data.size >= 4 and data[0] == 0xFF and data[1] == 0xD8:  # a JPEG's start of image
-        grey = decode_packet_grey(data)
-        if grey is not None:
-            return grey, data.tobytes()
+    grey = decode_packet_grey(data)  # None for anything but a JPEG that decodes
+    if grey is not None:
+        return grey, data.tobytes()
     return decode_image(data, fast_png=fast_png), None
 
 
