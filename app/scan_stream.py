@@ -39,7 +39,7 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     """
     footage = source.info.kind in TRACKED_KINDS
     first = settle or CharucoBoardDetector(board)
-    frames: Iterator[Frame] = iter(source)  # sources decode ahead themselves (drivers/replay.py `_decoded_ahead`)
+    frames: Iterator[Frame] = iter(source)  # sources decode ahead themselves (drivers/image_files.py `decoded_ahead`)
     yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
     spec = _settled_spec(first)
     scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=footage and not every_frame,

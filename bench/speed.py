@@ -40,7 +40,8 @@ from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibrationError
-from calibcoach.drivers.replay import decode_image, open_source
+from calibcoach.drivers.image_files import decode_image
+from calibcoach.drivers.replay import open_source
 from calibcoach.drivers.sim import LENSES
 
 ROOT = Path(__file__).resolve().parent  # a bench script may find its own folder; the package never does

@@ -19,6 +19,9 @@ import numpy as np
 FRAMES_AHEAD_BYTES = 64 * 2**20
 
 
+DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
+
+
 def frames_ahead(frame_bytes: int) -> int:
     """How many frames of `frame_bytes` a stage may run ahead of its consumer: 64 MB of them, 8 to 48.
 

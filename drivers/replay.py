@@ -1,4 +1,5 @@
-"""Replay sources: video files, folders of images and calibcoach recordings, behind `FrameSource`.
+"""Replay sources: folders of images and calibcoach recordings, and `open_source` for any path (a video
+file opens as drivers/video_file.py's `VideoFileSource`), behind `FrameSource`.
 
 Replays are how most calibrations start (a phone video, a folder of stills) and how the live
 pipeline is tested, so they must never stop half-way on one bad frame: undecodable frames go to
@@ -9,38 +10,32 @@ opened and raised as `SourceError` with one sentence saying what was found and w
 
 from __future__ import annotations
 
-import math
-import os
 import re
-from collections import Counter, deque
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import closing
+from collections import Counter
+from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 from types import MappingProxyType
-from typing import TypeVar
 
 import cv2
 import numpy as np
 
-from calibcoach.drivers.avi_mjpg import MjpgIndex, decode_packet, decode_packet_grey, mjpg_index, read_packet
-from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
+from calibcoach.drivers.base import DEFAULT_FPS, Frame, FrameSource, SkippedFrame, SourceInfo, frames_ahead
 from calibcoach.drivers.errors import SourceError
+from calibcoach.drivers.image_files import (
+    decoded_ahead,
+    fast_png_decodes,
+    read_frame_image,
+    read_image,
+    unreadable_reason,
+)
 from calibcoach.drivers.image_header import header_size
-from calibcoach.drivers.png_fast import decode_png
 from calibcoach.drivers.recording import SESSION_FILE, read_session
+from calibcoach.drivers.video_file import VideoFileSource
 
-T = TypeVar("T")
-D = TypeVar("D")  # what `_decoded_ahead` decodes an item to
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 _VIDEO_EXTENSIONS = (".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")  # for hints only
-_DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
 _LIVE_SPEC = re.compile(r"^(v4l2|depthai)(:.*)?$|^/dev/video\d+$")
-# Grey images stay (H, W), colour becomes (H, W, 3) BGR, 16-bit is scaled to 8-bit by OpenCV (>> 8).
-# EXIF orientation is ignored: calibration needs the sensor's own pixel grid, and a phone rotating
-# some stills would also make them a different size from the rest.
-_IMREAD_FLAGS = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_IGNORE_ORIENTATION
 
 
 def open_source(spec: str | Path) -> FrameSource:
@@ -72,180 +67,6 @@ def open_source(spec: str | Path) -> FrameSource:
     return VideoFileSource(path)
 
 
-class VideoFileSource(FrameSource):
-    """Frames of a video file: (H, W, 3) uint8 BGR, or of a Motion-JPEG AVI their grey (see below).
-
-    A Motion-JPEG AVI (what webcams record) is read straight from its container and its JPEGs
-    decoded by libjpeg on two threads (drivers/avi_mjpg.py), the luminance alone: each frame's
-    `image` is its grey, what detection reads, and `Frame.colour()` decodes the colour from the
-    JPEG it keeps (`Frame.encoded`) for the few frames a person sees (previews, the check picture):
-    decoding all of every frame and converting it to grey took 2.7x the CPU at 1080p. Any other
-    video is read by OpenCV's VideoCapture (FFmpeg), in colour. A frame that fails to decode costs
-    its index and is reported in `skipped`; after `max_consecutive_failures` failures in a row the
-    rest of the file is taken to be damaged and reading stops, with one `skipped` entry saying so
-    (a broken tail would otherwise be read for ever).
-    """
-
-    def __init__(self, path: str | Path, *, max_consecutive_failures: int = 25) -> None:
-        super().__init__()
-        self.path = Path(path)
-        self._max_failures = max(1, int(max_consecutive_failures))
-        self._capture: cv2.VideoCapture | None = None
-        self._rotation_deg = 0  # the container's display rotation, not applied (see `_open`)
-        if not self.path.is_file():
-            raise SourceError(f"{self.path} is not a file; pass a video file")
-        if self.path.stat().st_size == 0:
-            raise SourceError(f"{self.path} is empty (0 bytes); the copy or recording probably failed, so copy it again")
-        self._mjpg = self._mjpg_index()
-        if self._mjpg is not None:
-            self._fps, self._image_size = self._mjpg.fps, self._mjpg.image_size
-            self._frame_count: int | None = len(self._mjpg.packets) + self._mjpg.cut_off
-            return
-        probe = self._open()
-        try:
-            first = None
-            for _ in range(self._max_failures):  # a few bad leading frames are tolerated, as in frames()
-                ok, image = probe.read()
-                if ok and image is not None:
-                    first = image
-                    break
-            fps = probe.get(cv2.CAP_PROP_FPS)
-            count = probe.get(cv2.CAP_PROP_FRAME_COUNT)
-        finally:
-            probe.release()  # frames() reopens the file: the simplest rewind every backend supports
-        if first is None:
-            raise SourceError(
-                f"{self.path} opens as a video but none of its first {self._max_failures} frames decodes; convert it "
-                f"with ffmpeg (e.g. `ffmpeg -i {self.path.name} -c:v ffv1 out.mkv`) or pass a folder of images"
-            )
-        self._fps = float(fps) if math.isfinite(fps) and fps > 0 else None
-        self._frame_count = int(count) if math.isfinite(count) and count > 0 else None
-        self._image_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) pixels
-
-    def _mjpg_index(self) -> MjpgIndex | None:
-        """The file's MJPG frames when libjpeg decodes them at the announced size (else VideoCapture reads it)."""
-        index = mjpg_index(self.path) if hasattr(os, "pread") else None
-        if index is None:
-            return None
-        with open(self.path, "rb") as file:
-            for packet in index.packets[: self._max_failures]:  # the first frame that decodes, as VideoCapture's probe
-                image = decode_packet(read_packet(file.fileno(), packet))
-                if image is not None:
-                    return index if (image.shape[1], image.shape[0]) == index.image_size else None
-        return None  # none decodes here: VideoCapture judges the file (and says so if it fails too)
-
-    def _open(self) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(self.path))
-        if not capture.isOpened():
-            raise SourceError(
-                f"OpenCV cannot open {self.path} as a video (unknown or damaged format); convert it with ffmpeg "
-                f"(e.g. `ffmpeg -i {self.path.name} -c:v ffv1 out.mkv`) or pass a folder of images instead"
-            )
-        # The frames as stored, the sensor's own pixel grid, as for photos (EXIF orientation ignored):
-        # FFmpeg would otherwise turn a phone's portrait video by its rotation tag, and the camera matrix
-        # would be for the turned picture (fx and fy, cx and cy swapped against the same phone's photos).
-        capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
-        rotation = capture.get(cv2.CAP_PROP_ORIENTATION_META)
-        self._rotation_deg = int(round(rotation)) % 360 if math.isfinite(rotation) else 0
-        return capture
-
-    @property
-    def info(self) -> SourceInfo:
-        width, height = self._image_size
-        fps = f"{self._fps:g} fps" if self._fps else "unknown fps"
-        count = f"{self._frame_count} frames" if self._frame_count else "unknown length"
-        turned = (f"; stored as the sensor gives it, though its players show it turned {self._rotation_deg} deg: "
-                  "the calibration is for the stored frames" if self._rotation_deg else "")
-        return SourceInfo(
-            description=f"video file {self.path.name} ({width}x{height}, {fps}, {count}{turned})",
-            kind="video", image_size=self._image_size, fps=self._fps, frame_count=self._frame_count,
-        )
-
-    def frames(self) -> Iterator[Frame]:
-        self.skipped = []
-        failed: list[int] = []  # indices of the current run of undecodable frames
-        with closing(self._unpacked() if self._mjpg is not None else self._captured()) as decoded:
-            for index, image, timestamp_ns, encoded in decoded:
-                if image is None:
-                    failed.append(index)
-                    if len(failed) >= self._max_failures:
-                        # With no frame count a normal end looks the same, so only a known count is reported.
-                        if self._frame_count is not None:
-                            self.skipped.append(SkippedFrame(failed[0], "", (
-                                f"frames {failed[0]}-{failed[-1]} failed to decode in a row, so reading stopped; "
-                                f"the header announces {self._frame_count} frames, the rest of the file is damaged")))
-                        return
-                    continue
-                self.skipped += [SkippedFrame(i, "", "frame could not be decoded (damaged video data)") for i in failed]
-                failed.clear()
-                yield Frame(index=index, timestamp_ns=timestamp_ns, image=image, encoded=encoded)
-        if self._mjpg is not None and self._mjpg.cut_off:
-            cut = len(self._mjpg.packets)
-            self.skipped.append(SkippedFrame(cut, "", (
-                f"the file ends inside frame {cut}, so it was cut off (copied or recorded incompletely); "
-                "the frames before it are read")))
-
-    def _unpacked(self) -> Iterator[tuple[int, np.ndarray | None, int, bytes | None]]:
-        """(index, grey image or None, timestamp, the frame's JPEG) of every MJPG frame, decoded ahead on
-        worker threads: the luminance alone (`decode_packet_grey`), the colour on demand (`Frame.colour`)."""
-        index = self._mjpg
-        assert index is not None
-        period_ns = 1e9 / (index.fps or _DEFAULT_FPS)
-        ahead = frames_ahead(index.image_size[0] * index.image_size[1])
-        fd = os.open(self.path, os.O_RDONLY)
-
-        def decode(packet: tuple[int, int]) -> tuple[np.ndarray | None, bytes]:
-            data = read_packet(fd, packet)
-            return decode_packet_grey(data), data.tobytes()
-
-        images = _decoded_ahead(index.packets, decode, ahead=ahead)
-        try:
-            for i, (image, encoded) in enumerate(images):
-                yield i, image, round(i * period_ns), encoded
-        finally:
-            images.close()  # its decodes finish before the file they read is closed
-            os.close(fd)
-
-    def _captured(self) -> Iterator[tuple[int, np.ndarray | None, int, None]]:
-        """(index, BGR image or None, timestamp, None) of every frame VideoCapture reads, up to the end it announces."""
-        capture = self._capture = self._open()
-        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
-        index, previous_ns = 0, -1
-        try:
-            while True:
-                ok, image = capture.read()  # image: (H, W, 3) uint8 BGR
-                if not ok or image is None:
-                    if self._frame_count is not None and index >= self._frame_count:
-                        return  # the end the header announced
-                    yield index, None, 0, None
-                else:
-                    timestamp_ns = self._timestamp_ns(capture, index, previous_ns, period_ns)
-                    yield index, image, timestamp_ns, None
-                    previous_ns = timestamp_ns
-                index += 1
-        finally:
-            capture.release()
-            self._capture = None
-
-    @staticmethod
-    def _timestamp_ns(capture: cv2.VideoCapture, index: int, previous_ns: int, period_ns: float) -> int:
-        """The container's time of the frame just read if it is sane (finite, increasing), else index / fps.
-
-        Some backends report 0 ms for every frame, and FFmpeg reports 0 after a failed decode.
-        """
-        position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
-        if math.isfinite(position_ms) and position_ms >= 0:
-            position_ns = round(position_ms * 1e6)
-            if index == 0 or position_ns > previous_ns:
-                return position_ns
-        return round(index * period_ns)
-
-    def close(self) -> None:
-        if self._capture is not None:
-            self._capture.release()
-            self._capture = None
-
-
 class ImageFolderSource(FrameSource):
     """The images of one folder in natural order (cal2 before cal10), each a frame named by its file.
 
@@ -275,17 +96,17 @@ class ImageFolderSource(FrameSource):
         majority = max(counts, key=lambda size: (counts[size], -sizes.index(size))) if counts else None
         first, first_path = next(
             ((image, path) for path, size in zip(self._files, sizes, strict=True)
-             if (majority is None or size == majority) and (image := _read_image(path)) is not None), (None, None))
+             if (majority is None or size == majority) and (image := read_image(path)) is not None), (None, None))
         if first is None and majority is not None:  # the headers lied or those files are damaged: any image will do
             first, first_path = next(
-                ((image, path) for path in self._files if (image := _read_image(path)) is not None), (None, None))
+                ((image, path) for path in self._files if (image := read_image(path)) is not None), (None, None))
         self._size_source = "" if first_path is None else (
             f"{counts[majority]} of the {len(self._files)} images are"
             if majority is not None and majority == (int(first.shape[1]), int(first.shape[0])) and counts[majority] > 1
             else f"the first image ({first_path.name}) is")
         # One encoder wrote the folder: when its first image is a PNG the fast decoder handles, so are
         # the rest (and when not, none is tried: a failed try costs its inflate, ~1 ms).
-        self._fast_png = first_path is not None and _fast_png_decodes(first_path, first)
+        self._fast_png = first_path is not None and fast_png_decodes(first_path, first)
         if first is None:
             raise SourceError(
                 f"none of the {len(self._files)} images in {self.path} decodes (e.g. {self._files[0].name}); "
@@ -304,8 +125,8 @@ class ImageFolderSource(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         self.skipped = []
-        for index, (image, encoded) in enumerate(_decoded_ahead(
-                self._files, partial(_read_frame_image, fast_png=self._fast_png), ahead=frames_ahead(self._frame_bytes))):
+        for index, (image, encoded) in enumerate(decoded_ahead(
+                self._files, partial(read_frame_image, fast_png=self._fast_png), ahead=frames_ahead(self._frame_bytes))):
             item = self._frame_or_skip(index, image, encoded)
             if isinstance(item, SkippedFrame):
                 self.skipped.append(item)
@@ -314,16 +135,16 @@ class ImageFolderSource(FrameSource):
 
     def _frame_or_skip(self, index: int, image: np.ndarray | None, encoded: bytes | None = None) -> Frame | SkippedFrame:
         """The frame, or why it is skipped; image: (H, W) uint8 grey or (H, W, 3) uint8 BGR, or None;
-        encoded: a JPEG's bytes where only its grey was decoded (`_read_frame_image`)."""
+        encoded: a JPEG's bytes where only its grey was decoded (`read_frame_image`)."""
         path = self._files[index]
         if image is None:
-            return SkippedFrame(index, path.name, _unreadable_reason(path))
+            return SkippedFrame(index, path.name, unreadable_reason(path))
         size = (int(image.shape[1]), int(image.shape[0]))
         if size != self._image_size:
             return SkippedFrame(index, path.name, (
                 f"image is {size[0]}x{size[1]} but {self._size_source} "
                 f"{self._image_size[0]}x{self._image_size[1]}; all images must share one camera resolution"))
-        period_ns = 1e9 / (self._fps or _DEFAULT_FPS)
+        period_ns = 1e9 / (self._fps or DEFAULT_FPS)
         return Frame(index=index, timestamp_ns=round(index * period_ns), image=image, name=path.name, encoded=encoded)
 
 
@@ -376,14 +197,14 @@ class RecordingSource(FrameSource):
         # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3). The
         # fast PNG decoder when it gives the first frame's pixels exactly (as for a folder).
         first = next((path for path in paths if path.is_file()), None)
-        decoded = None if first is None else _read_image(first, cv2.IMREAD_UNCHANGED)
-        fast_png = decoded is not None and _fast_png_decodes(first, decoded)
+        decoded = None if first is None else read_image(first, cv2.IMREAD_UNCHANGED)
+        fast_png = decoded is not None and fast_png_decodes(first, decoded)
         ahead = frames_ahead(3 * self._image_size[0] * self._image_size[1])
         for entry, path, image in zip(self._contents.entries, paths,
-                                      _decoded_ahead(
-                                          paths, partial(_read_image, flags=cv2.IMREAD_UNCHANGED, fast_png=fast_png), ahead=ahead), strict=True):
+                                      decoded_ahead(
+                                          paths, partial(read_image, flags=cv2.IMREAD_UNCHANGED, fast_png=fast_png), ahead=ahead), strict=True):
             if image is None:
-                self.skipped.append(SkippedFrame(entry["index"], path.name, _unreadable_reason(path)))
+                self.skipped.append(SkippedFrame(entry["index"], path.name, unreadable_reason(path)))
                 continue
             size = (int(image.shape[1]), int(image.shape[0]))
             if size != self._image_size or image.dtype != np.uint8:
@@ -402,88 +223,6 @@ def _natural_key(path: Path) -> tuple[tuple[tuple[int, int | str], ...], str]:
     """Sort key comparing digit runs as numbers, case-insensitively: cal2 < cal10 < Cal11."""
     parts = re.split(r"(\d+)", path.name.lower())
     return tuple((0, int(p)) if p.isdigit() else (1, p) for p in parts if p), path.name
-
-
-_DECODE_WORKERS = 2  # decoding releases the GIL; a 720p PNG takes ~5 ms in OpenCV, ~2.9 ms in png_fast
-
-
-def _decoded_ahead(items: Sequence[T], decode: Callable[[T], D], *, ahead: int = 8) -> Iterator[D]:
-    """`decode(item)` of every item (a file, a video frame's place in its file), in order, run on
-    worker threads `ahead` items ahead.
-
-    Replay is otherwise bound by decoding on the consumer's thread (half of a 784-frame replay's
-    time was imdecode); the consumer never waits once the pipeline is full. Closing the iterator
-    waits for the decodes already running (the pool's exit), so what they read can be closed after.
-    """
-    with ThreadPoolExecutor(max_workers=_DECODE_WORKERS, thread_name_prefix="decode") as pool:
-        pending: deque[Future[np.ndarray | None]] = deque()
-        try:
-            for item in items:
-                pending.append(pool.submit(decode, item))
-                if len(pending) >= ahead:
-                    yield pending.popleft().result()
-            while pending:
-                yield pending.popleft().result()
-        finally:
-            for future in pending:
-                future.cancel()
-
-
-def _read_frame_image(path: Path, *, fast_png: bool = False) -> tuple[np.ndarray | None, bytes | None]:
-    """A folder's frame as `_read_image` decodes it, but of a JPEG only the luminance, with its bytes:
-    what detection reads, at ~40% of the cost; `Frame.colour()` decodes the rest where a person sees
-    the frame (as of an MJPG video's frames: drivers/avi_mjpg.py)."""
-    try:
-        data = np.fromfile(path, np.uint8)
-    except OSError:
-        return None, None
-    grey = decode_packet_grey(data)  # None for anything but a JPEG that decodes
-    if grey is not None:
-        return grey, data.tobytes()
-    return decode_image(data, fast_png=fast_png), None
-
-
-def _read_image(path: Path, flags: int = _IMREAD_FLAGS, *, fast_png: bool = False) -> np.ndarray | None:
-    """Decode an image file, or None if it is missing, empty or not decodable (never raises)."""
-    try:
-        data = np.fromfile(path, np.uint8)  # imdecode, not imread: no path-encoding trouble, no stderr noise
-    except OSError:
-        return None
-    return decode_image(data, flags, fast_png=fast_png)
-
-
-def decode_image(data: np.ndarray, flags: int = _IMREAD_FLAGS, *, fast_png: bool = False) -> np.ndarray | None:
-    """An image file's bytes decoded, or None if empty or not decodable (never raises).
-
-    `fast_png`: try drivers/png_fast.py first (~3x faster on the PNGs OpenCV writes by default, ~2x on
-    adaptively filtered ones, 720p grey), OpenCV if it declines.
-    """
-    if data.size == 0:
-        return None
-    if fast_png and flags in (_IMREAD_FLAGS, cv2.IMREAD_UNCHANGED):  # both give grey as (H, W), colour as BGR
-        image = decode_png(data.data)
-        if image is not None:
-            return image
-    image = cv2.imdecode(data, flags)
-    if image is None or image.ndim not in (2, 3):
-        return None
-    return image
-
-
-def _fast_png_decodes(path: Path, decoded: np.ndarray) -> bool:
-    """Whether drivers/png_fast.py decodes this file to the pixels OpenCV `decoded` it to."""
-    if path.suffix.lower() != ".png":
-        return False
-    fast = decode_png(np.fromfile(path, np.uint8).data)
-    return fast is not None and np.array_equal(fast, decoded)
-
-
-def _unreadable_reason(path: Path) -> str:
-    if not path.exists():
-        return "file is missing"
-    if path.stat().st_size == 0:
-        return "file is empty (0 bytes)"
-    return f"file does not decode as an image (damaged, truncated, or not really a {path.suffix} file)"
 
 
 def _no_images_message(folder: Path) -> str:

@@ -17,7 +17,8 @@ from calibcoach.app.preview import frame_preview_jpeg
 from calibcoach.drivers.avi_mjpg import mjpg_index
 from calibcoach.drivers.base import SkippedFrame
 from calibcoach.drivers.recording import RecordingWriter
-from calibcoach.drivers.replay import RecordingSource, VideoFileSource
+from calibcoach.drivers.replay import RecordingSource
+from calibcoach.drivers.video_file import VideoFileSource
 
 WIDTH, HEIGHT, FPS = 64, 48, 15
 

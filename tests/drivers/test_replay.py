@@ -13,7 +13,8 @@ import pytest
 
 from calibcoach.drivers.base import SkippedFrame
 from calibcoach.drivers.errors import SourceError
-from calibcoach.drivers.replay import ImageFolderSource, RecordingSource, VideoFileSource, open_source
+from calibcoach.drivers.replay import ImageFolderSource, RecordingSource, open_source
+from calibcoach.drivers.video_file import VideoFileSource
 
 WIDTH, HEIGHT = 64, 48  # pixels; small so the whole file runs in well under a second
 
