@@ -180,7 +180,9 @@ class SessionFinish:
         self.views, self._repeats = offered_views, []
 
         def solve_with(views: Sequence[View], model: str) -> Calibration:
-            return robust_calibrate(views, self.image_size, model, initial=self.camera if self.camera.model == model else None)
+            # the capture's own lens as the start (a fisheye one, of a wide lens, for a rational solve too: calibrate._starts)
+            warm = self.camera.model == model or (model == "rational" and self.camera.model == "fisheye")
+            return robust_calibrate(views, self.image_size, model, initial=self.camera if warm else None)
 
         # The robust solve of the likeliest model starts as soon as a field of view names it and
         # runs beside the model choice's cross-validation (OpenCV releases the GIL): its inputs do

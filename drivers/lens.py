@@ -347,3 +347,35 @@ def _invert_monotonic(profile, targets: np.ndarray, upper: float, slope=None) ->
         if done.all():
             break
     return x
+
+
+# A rational profile fitted to a fisheye's is a start for a rational solve, not a model: past this
+# off-axis angle tan(theta) grows without bound and no rational term follows the fisheye there.
+_RATIONAL_FIT_MAX_ANGLE_RAD = np.deg2rad(75.0)
+
+
+def rational_like(camera: CameraModel, max_angle_rad: float) -> CameraModel | None:
+    """A rational model with `camera`'s matrix and a fisheye `camera`'s radial profile out to `max_angle_rad` off axis.
+
+    Both models put a ray at the angle theta off axis at the distance f * rho * tan(theta) from the
+    principal point: the fisheye's rho = theta_d / tan(theta), the rational's (1 + k1 r^2 + k2 r^4 +
+    k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6) at r = tan(theta). Multiplied by the denominator the
+    match is linear in k1..k6, and is solved by least squares over the angles, each row weighted
+    by r (its pixel lever). None when the fit has a pole or a fold inside the range (no usable start).
+    """
+    if camera.model != "fisheye":
+        raise ValueError(f"rational_like converts a fisheye model, got {camera.model!r}")
+    top = float(np.clip(max_angle_rad, np.deg2rad(5.0), _RATIONAL_FIT_MAX_ANGLE_RAD))
+    theta = np.linspace(top / 200.0, top, 200)
+    r = np.tan(theta)
+    rho = _fisheye_theta_d(camera.dist_coeffs, theta) / r
+    r2 = r * r
+    design = np.stack([r2, r2**2, r2**3, -rho * r2, -rho * r2**2, -rho * r2**3], axis=1) * r[:, None]
+    k, *_ = np.linalg.lstsq(design, (rho - 1.0) * r, rcond=None)
+    dist = np.array([k[0], k[1], 0.0, 0.0, k[2], k[3], k[4], k[5]])
+    if not np.all(np.isfinite(dist)) or np.any(1 + k[3] * r2 + k[4] * r2**2 + k[5] * r2**3 <= 0):
+        return None
+    rational = CameraModel("rational", camera.camera_matrix, dist, camera.image_size)
+    if _fold_of("rational", tuple(dist)) <= r[-1]:
+        return None
+    return rational

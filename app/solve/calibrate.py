@@ -18,7 +18,7 @@ import numpy as np
 from calibcoach.app.solve.result import View
 from calibcoach.app.solve.weighted import weighted_refine
 from calibcoach.drivers.errors import CalibrationError
-from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.lens import CameraModel, rational_like
 
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 # cv2.fisheye.calibrate stops once an iteration moves f and c by less than eps of their size. At
@@ -135,7 +135,7 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
 
 def _starts(model: str, initial: CameraModel | None, cold_pinhole: ColdPinhole) -> Iterator[CameraModel | None]:
     """Where a pinhole or rational solve starts, best first: the caller's guess (the incremental
-    solve), then for the rational model a pinhole solve, then OpenCV's own initialisation (None).
+    solve; of a fisheye guess, for the rational model, its `rational_like` twin), then for the rational model a pinhole solve, then OpenCV's own initialisation (None).
 
     `solve` takes a start that fits well and tries no further one; otherwise the lowest RMS wins (a
     few inconsistent views can send one start into a wrong basin). So each start is made only when
@@ -145,6 +145,13 @@ def _starts(model: str, initial: CameraModel | None, cold_pinhole: ColdPinhole) 
     """
     if initial is not None and initial.model != "fisheye":
         yield initial
+    elif initial is not None and model == "rational":
+        # A wide lens's capture runs on a fisheye working model; its rational twin over the angles the
+        # views reach starts the solve in the basin the pinhole start leads to (104 deg 1080p render,
+        # 250 views: the same solution to 1e-7 px in 1.3 s against 2.4 s, the pinhole solve skipped).
+        like = rational_like(initial, _largest_view_angle_rad(initial, cold_pinhole.views))
+        if like is not None:
+            yield like
     if model == "rational":
         try:
             pinhole = cold_pinhole().camera
@@ -153,6 +160,12 @@ def _starts(model: str, initial: CameraModel | None, cold_pinhole: ColdPinhole) 
         else:
             yield pinhole
     yield None
+
+
+def _largest_view_angle_rad(camera: CameraModel, views: Sequence[View]) -> float:
+    """The largest angle off `camera`'s axis at which any of `views`' corners is seen, rad."""
+    rays = camera.unproject(np.concatenate([v.image_points_px for v in views]))
+    return float(np.arccos(np.clip(rays[:, 2], -1.0, 1.0)).max())
 
 
 def _solve_from(views: Sequence[View], image_size: tuple[int, int], model: str, initial: CameraModel | None) -> RawSolution:

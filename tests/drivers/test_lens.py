@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.lens import CameraModel, rational_like
 
 LENSES = {
     "pinhole": CameraModel("pinhole", [[900, 0, 641.3], [0, 901, 357.9], [0, 0, 1]], [-0.12, 0.08, 0.001, -0.0007, -0.02], (1280, 720)),
@@ -118,3 +118,18 @@ def test_many_points_project_as_opencv_projects_them(model: str) -> None:
         np.testing.assert_allclose(got, expected.reshape(-1, 2), rtol=1e-11, atol=1e-9)
         # and the few-point path (OpenCV itself) agrees with the batch
         np.testing.assert_allclose(camera.project(points[:5], rvec, tvec), got[:5], rtol=1e-11, atol=1e-9)
+
+
+@pytest.mark.parametrize("fisheye", [LENSES["fisheye"], CameraModel("fisheye", [[700, 0, 960], [0, 700, 540], [0, 0, 1]],
+                                                                     [0.05, -0.02, 0.004, -0.0005], (1920, 1080))])
+def test_a_fisheyes_rational_twin_images_its_rays_where_it_does(fisheye: CameraModel) -> None:
+    # The start a wide lens's rational solve takes from the capture's fisheye model (calibrate._starts).
+    twin = rational_like(fisheye, np.radians(60.0))
+    assert twin is not None and twin.model == "rational"
+    np.testing.assert_array_equal(twin.camera_matrix, fisheye.camera_matrix)
+    rng = np.random.default_rng(4)
+    theta, phi = rng.uniform(0, np.radians(60.0), 2000), rng.uniform(0, 2 * np.pi, 2000)
+    rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=1)
+    assert np.abs(twin.project(rays) - fisheye.project(rays)).max() < 0.05  # px
+    with pytest.raises(ValueError, match="converts a fisheye"):
+        rational_like(LENSES["rational"], 1.0)
