@@ -148,16 +148,20 @@ def test_a_fisheye_warm_start_chooses_as_a_cold_one_without_opencvs_basin_search
         assert warm.candidates[model] == pytest.approx(score, rel=1e-4)
 
 
-def test_a_warm_rational_solve_makes_no_pinhole_start(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The robust solve's later rounds and the halves' second solves start from the solve before.
-    # A rational solve's fallback start (a cold pinhole solve, several times the warm solve's cost)
-    # is made only when the warm start does not fit; the result is the warm start's either way.
+@pytest.mark.parametrize("start", ["rational", "fisheye"])
+def test_a_warm_rational_solve_makes_no_pinhole_start(monkeypatch: pytest.MonkeyPatch, start: str) -> None:
+    # The robust solve's later rounds and the halves' second solves start from the solve before; a
+    # wide lens's final solve from the capture's fisheye working lens (its rational twin,
+    # `lens.rational_like`). A rational solve's fallback start (a cold pinhole solve, several times
+    # the warm solve's cost) is made only when the warm start does not fit; the result is the cold
+    # path's either way.
     import cv2
 
     from calibcoach.app.solve.calibrate import solve
 
     views = views_of("wide720", 3, n=20)
     cold = solve(views, SIZE, "rational")
+    initial = cold.camera if start == "rational" else solve(views, SIZE, "fisheye").camera
     calls: list[int] = []
     real_calibrate = cv2.calibrateCamera
 
@@ -166,39 +170,14 @@ def test_a_warm_rational_solve_makes_no_pinhole_start(monkeypatch: pytest.Monkey
         return real_calibrate(*args, **kwargs)
 
     monkeypatch.setattr(cv2, "calibrateCamera", counting)
-    warm = solve(views, SIZE, "rational", initial=cold.camera)
+    warm = solve(views, SIZE, "rational", initial=initial)
     assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [True]  # the warm start alone
-    assert warm.rms_px == pytest.approx(cold.rms_px, rel=1e-6)
-    np.testing.assert_allclose(warm.camera.camera_matrix, cold.camera.camera_matrix, rtol=1e-6)
-    calls.clear()
-    solve(views, SIZE, "rational")  # cold: the pinhole start first, then the rational solve from it
-    assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [False, True]
-
-
-def test_a_rational_solve_from_a_fisheye_capture_lens_makes_no_pinhole_start(monkeypatch: pytest.MonkeyPatch) -> None:
-    # A wide lens's capture runs on a fisheye working model; the final rational solve starts from
-    # its rational twin (`lens.rational_like`) and lands where the cold path (pinhole start, then
-    # rational) lands, without the pinhole solve.
-    import cv2
-
-    from calibcoach.app.solve.calibrate import solve
-
-    views = views_of("wide720", 3, n=20)
-    cold = solve(views, SIZE, "rational")
-    capture_lens = solve(views, SIZE, "fisheye").camera
-    calls: list[int] = []
-    real_calibrate = cv2.calibrateCamera
-
-    def counting(*args, **kwargs):
-        calls.append(kwargs.get("flags", 0))
-        return real_calibrate(*args, **kwargs)
-
-    monkeypatch.setattr(cv2, "calibrateCamera", counting)
-    warm = solve(views, SIZE, "rational", initial=capture_lens)
-    assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [True]  # the fisheye's twin alone
     assert warm.rms_px == pytest.approx(cold.rms_px, rel=1e-6)
     rays = np.concatenate([v.object_points_m @ cv2.Rodrigues(r)[0].T + t for v, r, t in zip(views, cold.rvecs, cold.tvecs, strict=True)])
     assert np.abs(warm.camera.project(rays) - cold.camera.project(rays)).max() < 1e-4  # px
+    calls.clear()
+    solve(views, SIZE, "rational")  # cold: the pinhole start first, then the rational solve from it
+    assert [bool(flags & cv2.CALIB_RATIONAL_MODEL) for flags in calls] == [False, True]
 
 
 def test_each_half_is_solved_cold_as_a_pinhole_once(monkeypatch: pytest.MonkeyPatch) -> None:
