@@ -17,9 +17,8 @@ import numpy as np
 
 # What a pipeline stage (decoding ahead, the replay's scan) may hold of frames not yet consumed.
 FRAMES_AHEAD_BYTES = 64 * 2**20
-
-
-DEFAULT_FPS = 30.0  # clock for sources without one: timestamps advance as if captured at 30 fps
+# The clock of sources without one (folders, videos that give no rate): timestamps advance as if captured at 30 fps.
+DEFAULT_FPS = 30.0
 
 
 def frames_ahead(frame_bytes: int) -> int:

@@ -102,6 +102,7 @@ def fast_png_decodes(path: Path, decoded: np.ndarray) -> bool:
 
 
 def unreadable_reason(path: Path) -> str:
+    """Why a file gave no image, in words for `SkippedFrame.reason`."""
     if not path.exists():
         return "file is missing"
     if path.stat().st_size == 0:

@@ -135,7 +135,8 @@ def solve(views: Sequence[View], image_size: tuple[int, int], model: str, *, ini
 
 def _starts(model: str, initial: CameraModel | None, cold_pinhole: ColdPinhole) -> Iterator[CameraModel | None]:
     """Where a pinhole or rational solve starts, best first: the caller's guess (the incremental
-    solve; of a fisheye guess, for the rational model, its `rational_like` twin), then for the rational model a pinhole solve, then OpenCV's own initialisation (None).
+    solve; of a fisheye guess, for the rational model, its `rational_like` twin), then for the
+    rational model a pinhole solve, then OpenCV's own initialisation (None).
 
     `solve` takes a start that fits well and tries no further one; otherwise the lowest RMS wins (a
     few inconsistent views can send one start into a wrong basin). So each start is made only when
