@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibcoach.app.solve.calibrate import pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.calibrate import RawSolution, pose_for_view, reprojection_residuals, solve
 from calibcoach.app.solve.information import intrinsic_covariance, intrinsic_names
 from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
 from calibcoach.app.solve.weighted import view_weights, weighted_refine
@@ -153,6 +153,22 @@ def robust_calibrate(
             return solution
         raise error
 
+    def resolved(start: RawSolution, kept: list[bool] | None = None) -> RawSolution:
+        """The kept frames' kept corners solved again from the round before (`start`, whose frames
+        `kept` marks where some were dropped since). A pinhole round starts at its own minimum's
+        doorstep, and the Schur-reduced Levenberg-Marquardt of `weighted.py` (unit weights) reaches
+        the minimum calibrateCamera does from there (1e-5 px apart on 309 dim 720p views) in 0.14 s
+        against 0.35. The rational and fisheye models keep OpenCV's solver: a rational solve's
+        valley is nearly flat along its numerator and denominator terms, where the two stopped
+        0.1 px apart (16 synthetic views of a 115 deg lens), and a fisheye round has its fallbacks."""
+        if model != "pinhole":
+            return solve_kept(start.camera)
+        rvecs, tvecs = (start.rvecs, start.tvecs) if kept is None else (start.rvecs[kept], start.tvecs[kept])
+        views_kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]
+        camera, rvecs, tvecs = weighted_refine(start.camera, views_kept, rvecs, tvecs, np.ones(len(views_kept)))
+        squared = np.concatenate([np.sum(r**2, axis=1) for r in reprojection_residuals(camera, views_kept, rvecs, tvecs)])
+        return RawSolution(camera, float(np.sqrt(np.mean(squared))), rvecs, tvecs)
+
     raw = solve_kept(initial)
     for _round in range(max_rounds):
         # every corner of every kept frame, those set aside too, against the latest solve
@@ -175,7 +191,7 @@ def robust_calibrate(
                     dropped_corners.extend(corners_of(i))
                 keep_frames(list(~bad_frames))
                 # the dropped frames pulled this solve: judge no corner against it
-                raw = solve_kept(raw.camera)
+                raw = resolved(raw, list(~bad_frames))
                 continue
         # 2. corners, against a solve no outlier frame pulls; the MAD sigma over all of them
         # (those set aside too) does not shrink as corners are set aside
@@ -186,12 +202,14 @@ def robust_calibrate(
             break
         outs, norms_out = new_outs, norms
         few = [int((~o).sum()) < MIN_FRAME_CORNERS for o in outs]
+        kept = None
         if any(few):
             for i in np.flatnonzero(few):
                 dropped_frames.append(DroppedFrame(frames[i].frame_index, f"only {int((~outs[i]).sum())} corners left after removing outlier corners"))
                 dropped_corners.extend(corners_of(i))
-            keep_frames([not f for f in few])
-        raw = solve_kept(raw.camera)
+            kept = [not f for f in few]
+            keep_frames(kept)
+        raw = resolved(raw, kept)
     for i in range(len(frames)):
         dropped_corners.extend(corners_of(i))
     kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]

@@ -106,6 +106,31 @@ def test_planted_outlier_corners_are_dropped_and_only_they(seed: int) -> None:
     assert error == pytest.approx(truth_error_px(clean.camera, mask), rel=0.05, abs=0.01)
 
 
+def test_later_pinhole_rounds_reach_opencvs_minimum_without_calling_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    # After the first solve, each round re-solves from the round before by the Schur-reduced
+    # Levenberg-Marquardt (weighted.py, unit weights): OpenCV is called once, and the result is the
+    # minimum OpenCV's own solve of the kept corners reaches from there.
+    import cv2
+
+    model, camera = "pinhole", CAMERA
+    rng = np.random.default_rng(7)
+    poses = random_poses(camera, 16, rng, region=(0.1, 0.9), distance_m=(0.4, 0.7), tilt_deg=40)
+    views = observe(camera, poses, rng, noise_px=0.2)
+    for vi in range(0, len(views), 3):
+        views[vi] = displaced(views[vi], int(rng.integers(BOARD.shape[0])), rng, 6.0)
+    calls: list[int] = []
+    real_calibrate = cv2.calibrateCamera
+    monkeypatch.setattr(cv2, "calibrateCamera", lambda *a, **kw: calls.append(1) or real_calibrate(*a, **kw))
+    cal = robust_calibrate(views, SIZE, model)
+    assert len(cal.dropped_corners) >= 6 and len(calls) == 1  # corners dropped in a later round, no OpenCV solve for it
+    # OpenCV on the kept corners, then the final inverse-variance weighting as robust_calibrate does it
+    opencv = solve(list(cal.views), SIZE, model, initial=cal.camera)
+    weights = view_weights(reprojection_residuals(opencv.camera, list(cal.views), opencv.rvecs, opencv.tvecs))
+    expected = weighted_refine(opencv.camera, list(cal.views), opencv.rvecs, opencv.tvecs, weights)[0]
+    rays = np.concatenate([v.object_points_m @ cv2.Rodrigues(r)[0].T + t for v, r, t in zip(cal.views, cal.rvecs, cal.tvecs, strict=True)])
+    assert np.abs(expected.project(rays) - cal.camera.project(rays)).max() < 1e-4  # px
+
+
 def observe_again(views, planted):
     """`views` without the planted corners (what a perfect outlier test leaves)."""
     out = []
