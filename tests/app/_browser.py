@@ -41,26 +41,48 @@ def chromium_path() -> str:
     return path
 
 
+_STARTS = 3  # chromium's first start on a busy host has failed to open its DevTools port (twice in one CI run)
+_START_WAIT_S = 30.0
+
+
+def _started_chromium(profile: Path, window: tuple[int, int]) -> tuple[subprocess.Popen, list[dict]]:
+    """A headless chromium whose DevTools endpoint answers, and its tabs; started again (new port)
+    when one does not come up, and on the last failure its exit code and log's end are the message."""
+    log_path = profile.parent / f"{profile.name}-chromium.log"
+    for attempt in range(_STARTS):
+        port = free_port()
+        user_data = profile if attempt == 0 else profile.with_name(f"{profile.name}-{attempt}")  # a killed start's lock stays behind
+        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 f"--user-data-dir={user_data}", f"--remote-debugging-port={port}", "--remote-allow-origins=*",
+                 f"--window-size={window[0]},{window[1]}", "about:blank"]  # newer chromium refuses DevTools websockets from other origins
+        with open(log_path, "wb") as log:
+            browser = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=log)
+        deadline = time.monotonic() + _START_WAIT_S
+        while time.monotonic() < deadline and browser.poll() is None:
+            try:
+                tabs = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=1))
+            except OSError:
+                tabs = []
+            if any(t.get("type") == "page" for t in tabs):
+                return browser, tabs
+            time.sleep(0.1)
+        browser.kill()
+        browser.wait()
+        if attempt == _STARTS - 1:
+            tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
+            pytest.fail(f"chromium's DevTools endpoint never came up in {_STARTS} starts (last exit code "
+                        f"{browser.returncode}); its log ends: " + " | ".join(tail))
+    raise AssertionError("unreachable")
+
+
 @contextmanager
 def devtools_page(profile: Path, *, window: tuple[int, int] = (1600, 1000)) -> Iterator[Call]:
     """A headless chromium with one blank tab; yields `call(method, **params) -> reply`."""
     import websocket
 
-    port = free_port()
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile}", f"--remote-debugging-port={port}", "--remote-allow-origins=*",
-             f"--window-size={window[0]},{window[1]}", "about:blank"]  # newer chromium refuses DevTools websockets from other origins
-    browser = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    browser, tabs = _started_chromium(profile, window)
     try:
-        tabs = None
-        for _ in range(200):
-            try:
-                tabs = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=1))
-                break
-            except OSError:
-                time.sleep(0.1)
-        assert tabs, "chromium's DevTools endpoint never came up"
         page = next(t for t in tabs if t["type"] == "page")
         ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60)
         counter = iter(range(1, 100_000))
