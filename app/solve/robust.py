@@ -202,14 +202,14 @@ def robust_calibrate(
             break
         outs, norms_out = new_outs, norms
         few = [int((~o).sum()) < MIN_FRAME_CORNERS for o in outs]
-        kept = None
+        frames_kept = None
         if any(few):
             for i in np.flatnonzero(few):
                 dropped_frames.append(DroppedFrame(frames[i].frame_index, f"only {int((~outs[i]).sum())} corners left after removing outlier corners"))
                 dropped_corners.extend(corners_of(i))
-            kept = [not f for f in few]
-            keep_frames(kept)
-        raw = resolved(raw, kept)
+            frames_kept = [not f for f in few]
+            keep_frames(frames_kept)
+        raw = resolved(raw, frames_kept)
     for i in range(len(frames)):
         dropped_corners.extend(corners_of(i))
     kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]
