@@ -280,7 +280,7 @@ def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: 
     a 150 deg replay's parent process from 10.8 to 9.2 s of CPU (replay ratio 0.90 -> 0.72).
     """
     if initial is not None and initial.model == "fisheye":
-        warm = _refined_from(initial, views, None)
+        warm = refined_from(initial, views, None)
         if warm is not None and warm.rms_px < _GOOD_ENOUGH_RMS_PX:
             try:
                 return _checked(warm, len(views))
@@ -289,15 +289,17 @@ def _solve_fisheye(views: Sequence[View], image_size: tuple[int, int], initial: 
     step = max(len(views) / _FISHEYE_OPENCV_VIEWS, 1.0)
     spread = [views[int(i * step)] for i in range(min(len(views), _FISHEYE_OPENCV_VIEWS))]
     start = _solve_fisheye_opencv(spread, image_size, initial, criteria=_FISHEYE_BASIN_CRITERIA)
-    refined = _refined_from(start.camera, views, start if len(spread) == len(views) else None)
+    refined = refined_from(start.camera, views, start if len(spread) == len(views) else None)
     if refined is None:
         return _solve_fisheye_opencv(views, image_size, initial, criteria=_FISHEYE_CRITERIA)
     return _checked(refined, len(views))
 
 
-def _refined_from(camera: CameraModel, views: Sequence[View], posed: RawSolution | None) -> RawSolution | None:
+def refined_from(camera: CameraModel, views: Sequence[View], posed: RawSolution | None) -> RawSolution | None:
     """Intrinsics and every pose refined together from `camera` (`posed`: its solve of these very views,
-    poses included), unchecked; None when `camera` cannot pose some view."""
+    poses included), unchecked, by the Schur-reduced Levenberg-Marquardt of weighted.py at unit weights
+    (the fisheye's solve here, the robust solve's later pinhole rounds); None when `camera` cannot
+    pose some view."""
     if posed is not None:
         rvecs, tvecs = posed.rvecs, posed.tvecs
     else:

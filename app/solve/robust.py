@@ -23,7 +23,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibcoach.app.solve.calibrate import RawSolution, pose_for_view, reprojection_residuals, solve
+from calibcoach.app.solve.calibrate import (
+    RawSolution,
+    pose_for_view,
+    refined_from,
+    reprojection_residuals,
+    solve,
+)
 from calibcoach.app.solve.information import intrinsic_covariance, intrinsic_names
 from calibcoach.app.solve.result import Calibration, DroppedCorner, DroppedFrame, View
 from calibcoach.app.solve.weighted import view_weights, weighted_refine
@@ -163,11 +169,11 @@ def robust_calibrate(
         0.1 px apart (16 synthetic views of a 115 deg lens), and a fisheye round has its fallbacks."""
         if model != "pinhole":
             return solve_kept(start.camera)
-        rvecs, tvecs = (start.rvecs, start.tvecs) if kept is None else (start.rvecs[kept], start.tvecs[kept])
-        views_kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]
-        camera, rvecs, tvecs = weighted_refine(start.camera, views_kept, rvecs, tvecs, np.ones(len(views_kept)))
-        squared = np.concatenate([np.sum(r**2, axis=1) for r in reprojection_residuals(camera, views_kept, rvecs, tvecs)])
-        return RawSolution(camera, float(np.sqrt(np.mean(squared))), rvecs, tvecs)
+        if kept is not None:
+            start = RawSolution(start.camera, start.rms_px, start.rvecs[kept], start.tvecs[kept])
+        refined = refined_from(start.camera, [_subset(f, o) for f, o in zip(frames, outs, strict=True)], start)
+        assert refined is not None  # posed views: every pose is given
+        return refined
 
     raw = solve_kept(initial)
     for _round in range(max_rounds):
