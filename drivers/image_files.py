@@ -52,10 +52,10 @@ def decoded_ahead(items: Sequence[T], decode: Callable[[T], D], *, ahead: int = 
                 future.cancel()
 
 
-def read_frame_image(path: Path, *, fast_png: bool = False) -> tuple[np.ndarray | None, bytes | None]:
-    """A folder's frame as `read_image` decodes it, but of a JPEG only the luminance, with its bytes:
-    what detection reads, at ~40% of the cost; `Frame.colour()` decodes the rest where a person sees
-    the frame (as of an MJPG video's frames: drivers/avi_mjpg.py)."""
+def read_frame_image(path: Path, flags: int = IMREAD_FLAGS, *, fast_png: bool = False) -> tuple[np.ndarray | None, bytes | None]:
+    """A folder's or recording's frame as `read_image` decodes it, but of a JPEG only the luminance,
+    with its bytes: what detection reads, at ~40% of the cost; `Frame.colour()` decodes the rest where
+    a person sees the frame (as of an MJPG video's frames: drivers/avi_mjpg.py)."""
     try:
         data = np.fromfile(path, np.uint8)
     except OSError:
@@ -63,7 +63,7 @@ def read_frame_image(path: Path, *, fast_png: bool = False) -> tuple[np.ndarray 
     grey = decode_packet_grey(data)  # None for anything but a JPEG that decodes
     if grey is not None:
         return grey, data.tobytes()
-    return decode_image(data, fast_png=fast_png), None
+    return decode_image(data, flags, fast_png=fast_png), None
 
 
 def read_image(path: Path, flags: int = IMREAD_FLAGS, *, fast_png: bool = False) -> np.ndarray | None:

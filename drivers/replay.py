@@ -151,8 +151,8 @@ class ImageFolderSource(FrameSource):
 class RecordingSource(FrameSource):
     """A calibcoach recording (docs/recording-format.md), replayed with its controls and board.
 
-    A recording cut off by a crash replays from frames.jsonl; frames whose PNG is missing, damaged
-    or of the wrong size go to `skipped`, as do unusable lines of the frame list.
+    A recording cut off by a crash replays from frames.jsonl; frames whose file (PNG, or a camera's
+    JPEG) is missing, damaged or of the wrong size go to `skipped`, as do unusable lines of the frame list.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -194,15 +194,17 @@ class RecordingSource(FrameSource):
     def frames(self) -> Iterator[Frame]:
         self.skipped = list(self._contents.problems)
         paths = [self.path / entry["file"] for entry in self._contents.entries]
-        # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3). The
-        # fast PNG decoder when it gives the first frame's pixels exactly (as for a folder).
-        first = next((path for path in paths if path.is_file()), None)
+        # IMREAD_UNCHANGED: replay exactly what was written, grey as (H, W), BGR as (H, W, 3); of a
+        # camera's JPEG (RecordingWriter.write) its luminance, as the live session decoded it, and the
+        # JPEG for its colour. The fast PNG decoder when it gives the first PNG's pixels exactly (as
+        # for a folder).
+        first = next((path for path in paths if path.suffix.lower() == ".png" and path.is_file()), None)
         decoded = None if first is None else read_image(first, cv2.IMREAD_UNCHANGED)
         fast_png = decoded is not None and fast_png_decodes(first, decoded)
         ahead = frames_ahead(3 * self._image_size[0] * self._image_size[1])
-        for entry, path, image in zip(self._contents.entries, paths,
-                                      decoded_ahead(
-                                          paths, partial(read_image, flags=cv2.IMREAD_UNCHANGED, fast_png=fast_png), ahead=ahead), strict=True):
+        read = partial(read_frame_image, flags=cv2.IMREAD_UNCHANGED, fast_png=fast_png)
+        for entry, path, (image, encoded) in zip(self._contents.entries, paths, decoded_ahead(paths, read, ahead=ahead),
+                                                 strict=True):
             if image is None:
                 self.skipped.append(SkippedFrame(entry["index"], path.name, unreadable_reason(path)))
                 continue
@@ -213,7 +215,7 @@ class RecordingSource(FrameSource):
                     f"{self._image_size[0]}x{self._image_size[1]} uint8")))
                 continue
             yield Frame(index=entry["index"], timestamp_ns=entry["timestamp_ns"], image=image, name=path.name,
-                        controls=MappingProxyType(dict(entry["controls"])))
+                        controls=MappingProxyType(dict(entry["controls"])), encoded=encoded)
 
 
 # --- helpers ----------------------------------------------------------------------------------

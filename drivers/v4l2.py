@@ -3,9 +3,12 @@
 `list_v4l2_devices` answers "which camera, which formats, can its focus be locked?" before a
 capture starts. `V4L2Camera` is the `FrameSource` for a live camera: it negotiates a format (MJPG
 for large frames, because USB 2 cannot carry uncompressed 1080p at 30 fps; YUYV otherwise, which
-has no compression artefacts near the board corners), decodes every buffer to BGR, stamps it with
-the driver's capture time, and attaches a snapshot of the focus controls every few frames so that a
-focus drift during capture is visible in the recording.
+has no compression artefacts near the board corners), decodes every buffer, stamps it with the
+driver's capture time, and attaches a snapshot of the focus controls every few frames so that a
+focus drift during capture is visible in the recording. An MJPG buffer is decoded to its luminance
+alone, what detection reads, and keeps its JPEG (`Frame.encoded`) for the previews and for the
+recording, as an MJPG video's frames are (drivers/avi_mjpg.py): on the bench's 720p MJPG frames
+3.5 ms against 6.8 ms for colour, 4.2 against 14.2 ms at 1080p, and no conversion to grey after.
 
 Focus, exposure and white-balance locking live in `v4l2_controls` (`V4L2FocusControl`).
 No V4L2 device exists on the CI machines; the streaming path is kept thin and the control logic is
@@ -22,8 +25,10 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import cv2
 import numpy as np
 
+from calibcoach.drivers.avi_mjpg import decode_packet_grey
 from calibcoach.drivers.base import Frame, FrameSource, SkippedFrame, SourceInfo
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.v4l2_controls import (
@@ -33,9 +38,10 @@ from calibcoach.drivers.v4l2_controls import (
     describe_control,
 )
 
-__all__ = ["FocusControlError", "V4L2Camera", "V4L2FocusControl", "list_v4l2_devices",
+__all__ = ["FocusControlError", "V4L2Camera", "V4L2FocusControl", "frame_pixels", "list_v4l2_devices",
            "parse_v4l2_target"]
 
+_JPEG_FORMATS = ("MJPEG", "JPEG", "MJPG")  # linuxpy's names and the FourCC
 _MJPG_FROM_PIXELS = 1280 * 720  # at or above this size prefer MJPG: YUYV 720p30 already fills USB 2
 SNAPSHOT_EVERY = 10  # frames between focus snapshots: drift is slow, a read costs an ioctl per control
 # errnos that mean the device went away (unplugged, reset, USB bus error) rather than a bad request
@@ -148,7 +154,7 @@ def open_v4l2_device(path: str):
 
 
 class V4L2Camera(FrameSource):
-    """A live V4L2 camera as a frame source; frames are BGR (or grey for GREY cameras).
+    """A live V4L2 camera as a frame source; frames are BGR (YUYV) or grey (GREY; MJPG, with its JPEG).
 
     Opening negotiates the format and reads back what the driver chose: drivers substitute the
     nearest size they support without an error, so a mismatch with the requested size raises.
@@ -210,7 +216,7 @@ class V4L2Camera(FrameSource):
         try:
             with self._lvd.VideoCapture(self._device) as stream:
                 for raw in stream:
-                    image = decode_frame(raw.data, raw.pixel_format.name, raw.width, raw.height)
+                    image, jpeg = frame_pixels(raw.data, raw.pixel_format.name, raw.width, raw.height)
                     if image is None:
                         self.skipped.append(SkippedFrame(count, "", f"undecodable {raw.pixel_format.name} "
                                                                     f"buffer of {len(raw.data)} bytes"))
@@ -221,7 +227,7 @@ class V4L2Camera(FrameSource):
                     secs, usecs = raw.buff.timestamp.secs, raw.buff.timestamp.usecs
                     # the driver stamps at capture (CLOCK_MONOTONIC on UVC): better than our dequeue time
                     stamp = secs * 1_000_000_000 + usecs * 1000 if secs or usecs else time.monotonic_ns()
-                    yield Frame(count, stamp, image, controls=MappingProxyType(dict(controls)))
+                    yield Frame(count, stamp, image, controls=MappingProxyType(dict(controls)), encoded=jpeg)
                     count += 1
         except (OSError, FocusControlError) as exc:
             cause = exc if isinstance(exc, OSError) else exc.__cause__
@@ -259,24 +265,30 @@ def _choose_pixel_format(offered: list[str], pixels: int) -> str:
     return offered[0] if offered else "YUYV"
 
 
-def decode_frame(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray | None:
-    """One buffer as (H, W, 3) uint8 BGR, or (H, W) uint8 for GREY; None when it cannot be decoded.
+def frame_pixels(data: bytes, pixel_format: str, width: int, height: int) -> tuple[np.ndarray | None, bytes | None]:
+    """One buffer as a frame's `image` and `encoded`; the image None when the buffer cannot be decoded.
+
+    MJPG: the (H, W) uint8 luminance and the JPEG itself (`Frame.colour()` decodes the colour where
+    a person sees the frame); a JPEG that decodes to another size than the format's is not decodable
+    here (a frame of another size would stop the session). YUYV: (H, W, 3) uint8 BGR; GREY: (H, W)
+    uint8; neither keeps an encoded form.
 
     Example:
-        >>> decode_frame(bytes(8), "GREY", 4, 2).shape
-        (2, 4)
+        >>> image, jpeg = frame_pixels(bytes(8), "GREY", 4, 2)
+        >>> image.shape, jpeg
+        ((2, 4), None)
     """
-    import cv2
-
     buf = np.frombuffer(data, dtype=np.uint8)
-    if pixel_format in ("MJPEG", "JPEG", "MJPG"):
-        return cv2.imdecode(buf, cv2.IMREAD_COLOR)  # None for a truncated JPEG
+    if pixel_format in _JPEG_FORMATS:
+        jpeg = bytes(data)  # a copy: the buffer goes back to the driver once the frame is yielded
+        grey = decode_packet_grey(np.frombuffer(jpeg, np.uint8))  # None for a truncated or damaged JPEG
+        return (grey, jpeg) if grey is not None and grey.shape == (height, width) else (None, None)
     if pixel_format == "YUYV":
         if buf.size < width * height * 2:
-            return None
-        return cv2.cvtColor(buf[: width * height * 2].reshape(height, width, 2), cv2.COLOR_YUV2BGR_YUYV)
+            return None, None
+        return cv2.cvtColor(buf[: width * height * 2].reshape(height, width, 2), cv2.COLOR_YUV2BGR_YUYV), None
     if pixel_format == "GREY":
         if buf.size < width * height:
-            return None
-        return buf[: width * height].reshape(height, width).copy()
-    return None
+            return None, None
+        return buf[: width * height].reshape(height, width).copy(), None
+    return None, None

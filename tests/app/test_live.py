@@ -48,14 +48,32 @@ def exit_code_for(out: Path) -> int:
     return 0 if json.loads((out / "calibration.json").read_text())["verdict"]["trusted"] else 3
 
 
-@pytest.mark.parametrize("source", [DEMO, f"{DEMO}/frames"], ids=["recording", "folder"])
+def _as_mjpg_video(frames: Path, path: Path) -> Path:
+    """The demo's frames as a Motion-JPEG AVI: what an MJPG webcam delivers, frame by frame."""
+    files = sorted(frames.glob("*.png"))
+    first = cv2.imread(str(files[0]))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (first.shape[1], first.shape[0]))
+    if not writer.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG into .avi")
+    for file in files:
+        writer.write(cv2.imread(str(file)))
+    writer.release()
+    return path
+
+
+@pytest.mark.parametrize("source", [DEMO, f"{DEMO}/frames", "mjpg"], ids=["recording", "folder", "mjpg-video"])
 def test_live_recording_replays_to_the_identical_calibration(recordings_dir: Path, tmp_path: Path, source: str,
                                                              capsys: pytest.CaptureFixture[str]) -> None:
     record = tmp_path / "rec"
-    # a folder plays at 30 fps like a camera; the recording at its own 4 fps, sped up
-    speed = "1" if source.endswith("frames") else "6"
-    code = main(["live", "--source", str(recordings_dir / source), "--out", str(tmp_path / "live"), "--record", str(record),
+    # an MJPG video's frames come as a camera's MJPG frames do: their luminance, and the JPEG, which
+    # the recording keeps as it came (the replay must detect the same luminance from it)
+    played = _as_mjpg_video(recordings_dir / DEMO / "frames", tmp_path / "demo.avi") if source == "mjpg" else recordings_dir / source
+    # a folder or video plays at 30 fps like a camera; the recording at its own 4 fps, sped up
+    speed = "6" if source == DEMO else "1"
+    code = main(["live", "--source", str(played), "--out", str(tmp_path / "live"), "--record", str(record),
                  "--no-viewer", "--speed", speed, "--quiet"])
+    if source == "mjpg":
+        assert {p.suffix for p in (record / "frames").iterdir()} == {".jpg"}
     # how many frames a live run processes depends on the machine's load, and with them the grade;
     # the exit code must say which grade it was, and the replay must reach the same one with the same numbers
     solved = (tmp_path / "live" / "calibration.json").exists()  # a very loaded machine may keep too few frames

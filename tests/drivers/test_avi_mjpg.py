@@ -170,8 +170,8 @@ def test_a_file_cut_off_inside_a_frame_keeps_the_frames_before_it(tmp_path: Path
 
 def test_what_a_person_sees_of_an_mjpg_frame_is_in_colour(tmp_path: Path) -> None:
     """Only the grey is decoded for detection; the preview decodes its colour from the JPEG the frame
-    keeps (a grey preview would be a wrong picture). A recording of the frame keeps the grey the
-    session detected: its replay must detect the same pixels to reproduce the session."""
+    keeps (a grey preview would be a wrong picture). A recording of the frame keeps its JPEG byte for
+    byte: its replay must detect the same grey to reproduce the session, and the colour stays."""
     size = (1280, 720)
     y, x = np.mgrid[0:size[1], 0:size[0]]
     image = np.stack([x % 256, y % 256, (x + y) % 256], axis=2).astype(np.uint8)  # colour everywhere
@@ -188,5 +188,7 @@ def test_what_a_person_sees_of_an_mjpg_frame_is_in_colour(tmp_path: Path) -> Non
     with RecordingWriter(tmp_path / "rec", camera_id="file", kind="video", image_size=size, fps=FPS, controls={},
                          board=None) as recording:
         recording.write(frame)
+    assert (tmp_path / "rec" / "frames" / "000000.jpg").read_bytes() == frame.encoded
     (recorded,) = list(RecordingSource(tmp_path / "rec"))
     assert np.array_equal(recorded.grey(), frame.grey())  # not the colour's conversion, which rounds otherwise
+    assert recorded.image.ndim == 2 and np.array_equal(recorded.colour(), frame.colour())

@@ -18,12 +18,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from unittest import mock
 
+import cv2
+import numpy as np
 import pytest
 from linuxpy.video import raw
 from linuxpy.video.device import Device, FrameIntervalType, FrameSizeType
 
+from calibcoach.drivers.base import Frame
 from calibcoach.drivers.errors import CalibcoachError, SourceError
-from calibcoach.drivers.v4l2 import V4L2Camera, decode_frame, list_v4l2_devices, parse_v4l2_target
+from calibcoach.drivers.v4l2 import V4L2Camera, frame_pixels, list_v4l2_devices, parse_v4l2_target
 from calibcoach.drivers.v4l2_controls import (
     V4L2_CID_AUTO_WHITE_BALANCE,
     V4L2_CID_EXPOSURE_ABSOLUTE,
@@ -362,24 +365,36 @@ def test_parse_v4l2_target_rejects(spec: str | int) -> None:
         parse_v4l2_target(spec)
 
 
-def test_decode_yuyv_grey_and_broken_mjpeg() -> None:
+def test_decode_yuyv_grey_and_broken_buffers() -> None:
     # Y=128 with neutral chroma (U=V=128) is grey; OpenCV's BT.601 video range maps it to
     # (128 - 16) * 255 / 219 = 130.4 -> 130 in every channel
-    bgr = decode_frame(bytes([128] * (4 * 2 * 2)), "YUYV", 4, 2)
-    assert bgr.shape == (2, 4, 3)
+    bgr, kept = frame_pixels(bytes([128] * (4 * 2 * 2)), "YUYV", 4, 2)
+    assert bgr.shape == (2, 4, 3) and kept is None
     assert int(bgr.min()) == int(bgr.max()) == 130
-    grey = decode_frame(bytes(range(8)), "GREY", 4, 2)
-    assert grey.tolist() == [[0, 1, 2, 3], [4, 5, 6, 7]]
-    import cv2
-    import numpy as np
+    grey, kept = frame_pixels(bytes(range(8)), "GREY", 4, 2)
+    assert grey.tolist() == [[0, 1, 2, 3], [4, 5, 6, 7]] and kept is None
+    assert frame_pixels(b"\xff\xd8 truncated", "MJPEG", 4, 2) == (None, None)
+    assert frame_pixels(bytes(5), "YUYV", 4, 2) == (None, None)  # short buffer
 
-    ok, jpeg = cv2.imencode(".jpg", np.full((16, 24, 3), (0, 0, 255), np.uint8))  # pure red, BGR
+
+def _red_jpeg(width: int = 24, height: int = 16) -> bytes:
+    ok, jpeg = cv2.imencode(".jpg", np.full((height, width, 3), (0, 0, 255), np.uint8))  # pure red, BGR
     assert ok
-    decoded = decode_frame(jpeg.tobytes(), "MJPEG", 24, 16)
-    assert decoded.shape == (16, 24, 3)
-    assert decoded[8, 12].tolist()[2] > 240 and decoded[8, 12].tolist()[0] < 15  # red stays red, not blue
-    assert decode_frame(b"\xff\xd8 truncated", "MJPEG", 4, 2) is None
-    assert decode_frame(bytes(5), "YUYV", 4, 2) is None  # short buffer
+    return jpeg.tobytes()
+
+
+def test_mjpg_buffer_is_its_luminance_and_keeps_its_jpeg() -> None:
+    """Detection reads the luminance (libjpeg skips the chroma); the colour comes back from the kept JPEG."""
+    jpeg = _red_jpeg()
+    grey, kept = frame_pixels(memoryview(jpeg), "MJPEG", 24, 16)
+    assert kept == jpeg and isinstance(kept, bytes)  # a copy, not a view of the driver's buffer
+    assert grey.shape == (16, 24) and grey.dtype == np.uint8
+    assert np.array_equal(grey, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE))
+    colour = Frame(0, 0, grey, encoded=kept).colour()
+    assert colour.shape == (16, 24, 3)
+    assert colour[8, 12, 2] > 240 and colour[8, 12, 0] < 15  # red stays red, not blue
+    # a JPEG of another size than the negotiated format is no frame of this stream
+    assert frame_pixels(jpeg, "MJPEG", 32, 16) == (None, None)
 
 
 @pytest.fixture
@@ -415,6 +430,23 @@ def test_camera_streams_frames_with_driver_timestamps_and_focus_snapshots(stream
     assert frames[9].controls["focus_absolute"] == 85.0
     assert frames[10].controls["focus_absolute"] == 90.0
     assert frames[11].controls["focus_automatic_continuous"] == 1.0
+
+
+def test_mjpg_camera_streams_grey_frames_that_keep_their_jpeg(streaming: FakeCamera) -> None:
+    jpegs = [cv2.imencode(".jpg", np.full((32, 64, 3), (40 * i, 90, 200 - 40 * i), np.uint8))[1].tobytes()
+             for i in range(4)]
+    assert max(len(j) for j in jpegs) <= FakeCamera.BUFFER_BYTES
+    streaming.pixel_formats = [raw.PixelFormat.MJPEG]
+    streaming.format = [64, 32, raw.PixelFormat.MJPEG]
+    streaming.frames = jpegs
+    with V4L2Camera(str(streaming.node), size=(64, 32)) as cam:
+        stream = cam.frames()
+        frames = list(itertools.islice(stream, 4))
+        stream.close()
+    assert [f.encoded for f in frames] == jpegs  # each buffer's own bytes (bytesused), copied before requeueing
+    for frame, jpeg in zip(frames, jpegs, strict=True):
+        assert np.array_equal(frame.image, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE))
+        assert np.array_equal(frame.colour(), cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR))
 
 
 def test_camera_unplugged_mid_stream_raises_source_error(streaming: FakeCamera) -> None:
