@@ -20,12 +20,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from calibcoach.drivers.base import Frame, SkippedFrame
 from calibcoach.drivers.errors import SourceError
 from calibcoach.drivers.lens import CameraModel
+from calibcoach.drivers.png_fast import encode_png
 
 FORMAT_NAME = "calibcoach-recording"
 FORMAT_VERSION = 1
@@ -33,12 +33,6 @@ SESSION_FILE = "session.json"
 FRAMES_LOG = "frames.jsonl"
 FRAMES_DIR = "frames"
 TRUTH_FILE = "truth.json"
-# zlib level 1, every row "Sub"-filtered. OpenCV 5.1 pairs an explicit compression level with
-# libpng's adaptive filters (rows of Average and Paeth), which encode slower and which only libpng
-# decodes (drivers/png_fast.py handles Sub rows); asking for Sub as well, a 720p frame (OpenCV 5.1,
-# one thread) encodes in 19.6 ms BGR / 9.4 ms grey instead of 31.7 / 15.0 (the old parameters did
-# not keep up with 30 fps in colour), replays in 2.7 ms grey instead of 7.6, for files 3% larger.
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,18 +195,17 @@ class RecordingWriter:
         # stays. A 720p MJPG frame is then ~75 KB written as it came instead of a ~540 KB colour PNG
         # encoded in ~48 ms (bench MJPG frames, OpenCV 5.1): at 30 fps that encoding alone took more
         # than a core. Any other frame is its `image`, losslessly as a PNG.
+        # Any other frame is its `image`, losslessly as a PNG whose rows drivers/png_fast.py decodes
+        # fastest on replay (`encode_png`: 7-11 ms a 720p BGR frame where OpenCV's encoder took 26-48).
         suffix = "png" if frame.encoded is None else "jpg"
         relative = f"{FRAMES_DIR}/{index:06d}.{suffix}"
         final_path = self.folder / relative
-        temp_path = final_path.with_name(f".{index:06d}.tmp.{suffix}")  # cv2 picks the encoder by suffix
-        if frame.encoded is not None:
-            try:
-                temp_path.write_bytes(frame.encoded)
-            except OSError as exc:
-                raise SourceError(f"could not write {temp_path} ({exc.strerror}); check free disk space and write "
-                                  "permission") from exc
-        elif not cv2.imwrite(str(temp_path), frame.image, _PNG_PARAMS):
-            raise SourceError(f"could not write {temp_path}; check free disk space and write permission")
+        temp_path = final_path.with_name(f".{index:06d}.tmp.{suffix}")
+        try:
+            temp_path.write_bytes(encode_png(frame.image) if frame.encoded is None else frame.encoded)
+        except OSError as exc:
+            raise SourceError(f"could not write {temp_path} ({exc.strerror}); check free disk space and write "
+                              "permission") from exc
         os.replace(temp_path, final_path)
         entry = {"index": index, "file": relative, "timestamp_ns": int(frame.timestamp_ns),
                  "controls": _plain_controls(frame.controls)}

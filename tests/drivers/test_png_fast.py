@@ -148,3 +148,18 @@ def test_a_folder_of_opencv_pngs_replays_with_opencvs_frames(tmp_path: Path) -> 
     frames = list(source)
     assert [f.image.shape for f in frames] == [(48, 64)] * 5
     assert all(np.array_equal(f.image, g) for f, g in zip(frames, greys, strict=True))
+
+
+@pytest.mark.parametrize("shape", [(7, 13), (7, 13, 3), (1, 1), (1, 1, 3), (48, 1, 3), (720, 1280, 3)])
+def test_encoded_pngs_give_the_pixels_back_to_opencv_and_here(shape: tuple[int, ...]) -> None:
+    image = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)  # noise: any lossy step shows
+    data = png_fast.encode_png(image)
+    assert np.array_equal(_cv(data), image)  # libpng checks the chunks' CRCs and the zlib stream's Adler-32
+    assert np.array_equal(decode_png(data), image)
+    assert png_fast.row_filters(data).tolist() == [1] * shape[0]  # every row Sub: the fast path on replay
+
+
+def test_encode_png_refuses_what_a_png_frame_cannot_be() -> None:
+    for bad in (np.zeros((4, 4), np.uint16), np.zeros((4, 4, 4), np.uint8), np.zeros((0, 4), np.uint8)):
+        with pytest.raises(ValueError, match=r"encode_png takes \(H, W\) or \(H, W, 3\) uint8 images"):
+            png_fast.encode_png(bad)
