@@ -4,7 +4,8 @@ A recording is a folder that replays exactly like the camera it came from, so a 
 re-run through the pipeline, debugged and turned into a test. It has to survive a crash mid-capture
 (the laptop sleeps, the USB camera drops out): every frame is a whole file (a PNG, or the camera's
 JPEG as it came) renamed into place before its line is appended and fsynced to `frames.jsonl`, so
-whatever was written before the crash is readable afterwards. `session.json` only receives the full frame list on a clean `close()`.
+whatever was written before the crash is readable afterwards. `session.json` only receives the full
+frame list on a clean `close()`.
 
 This module owns the format; `calibcoach.drivers.replay.RecordingSource` turns a parsed recording
 into frames. `write_truth` / `read_truth` store the simulator's ground truth beside its recordings.
@@ -192,11 +193,10 @@ class RecordingWriter:
         # A frame delivered as a JPEG (an MJPG camera's, an MJPG file's or a JPEG folder's) whose
         # `image` is its luminance is kept as that JPEG, byte for byte: the replay decodes the same
         # luminance from it (RecordingSource), so it detects what the session detected, and the colour
-        # stays. A 720p MJPG frame is then ~75 KB written as it came instead of a ~540 KB colour PNG
-        # encoded in ~48 ms (bench MJPG frames, OpenCV 5.1): at 30 fps that encoding alone took more
-        # than a core. Any other frame is its `image`, losslessly as a PNG.
+        # stays. A 720p MJPG frame of the bench's is then 33-75 KB written as it came, where its colour
+        # as a PNG took 324-817 KB (and 26-48 ms in OpenCV's encoder, more than a core at 30 fps).
         # Any other frame is its `image`, losslessly as a PNG whose rows drivers/png_fast.py decodes
-        # fastest on replay (`encode_png`: 7-11 ms a 720p BGR frame where OpenCV's encoder took 26-48).
+        # fastest on replay (`encode_png`: 7-11 ms a 720p BGR frame).
         suffix = "png" if frame.encoded is None else "jpg"
         relative = f"{FRAMES_DIR}/{index:06d}.{suffix}"
         final_path = self.folder / relative
