@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _jpegs import without_huffman_tables
 
 from calibcoach.app.preview import frame_preview_jpeg
 from calibcoach.drivers.avi_mjpg import mjpg_index
@@ -43,17 +44,7 @@ def _written(path: Path, count: int, fourcc: str = "MJPG") -> Path:
 
 def _jpeg(i: int, *, huffman_tables: bool = True) -> bytes:
     data = cv2.imencode(".jpg", _textured(i))[1].tobytes()
-    if huffman_tables:
-        return data
-    # Drop the DHT segments, as webcams' MJPG does (AVI1): decoders then use the standard tables,
-    # which are the ones OpenCV's encoder wrote.
-    kept, at = bytearray(data[:2]), 2
-    while data[at + 1] != 0xDA:  # segments up to the start of scan
-        length = int.from_bytes(data[at + 2:at + 4], "big")
-        if data[at + 1] != 0xC4:
-            kept += data[at:at + 2 + length]
-        at += 2 + length
-    return bytes(kept + data[at:])
+    return data if huffman_tables else without_huffman_tables(data)
 
 
 def _chunk(fourcc: bytes, body: bytes, *, pad: bool = True) -> bytes:

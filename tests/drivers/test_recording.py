@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _jpegs import without_huffman_tables
 
 from calibcoach.drivers.base import Frame, SkippedFrame
 from calibcoach.drivers.errors import SourceError
@@ -116,10 +117,14 @@ def test_resume_continues_numbering_after_a_crash(tmp_path: Path) -> None:
 
 
 def _camera_jpeg(index: int) -> Frame:
-    """A frame as an MJPG camera delivers it: the JPEG's luminance, the JPEG kept (drivers/v4l2.py)."""
+    """A frame as an MJPG camera delivers it: the JPEG's luminance, the JPEG kept (drivers/v4l2.py);
+    frame 1 without Huffman tables, as many webcams send them."""
     y, x = np.mgrid[0:SIZE[1], 0:SIZE[0]]
     colour = np.stack([5 * x + index, 7 * y, 3 * (x + y)], axis=2).astype(np.uint8)
     jpeg = cv2.imencode(".jpg", colour)[1].tobytes()
+    if index == 1:
+        jpeg = without_huffman_tables(jpeg)
+        assert b"\xff\xc4" not in jpeg[:jpeg.index(b"\xff\xda")]
     grey = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
     return Frame(index, 1_000_000 * index, grey, controls={"focus_absolute": 30}, encoded=jpeg)
 
@@ -127,7 +132,8 @@ def _camera_jpeg(index: int) -> Frame:
 def test_a_cameras_jpeg_is_recorded_as_it_came_and_replays_as_the_session_saw_it(tmp_path: Path) -> None:
     """Resumed after PNG frames, an MJPG camera's frames are recorded as their JPEGs: the replay gives
     the luminance detected live (not the colour's conversion to grey, which rounds otherwise) and
-    the colour for what a person sees; a damaged JPEG is skipped with its reason."""
+    the colour for what a person sees, also of a JPEG without Huffman tables; a damaged JPEG is
+    skipped with its reason."""
     with _writer(tmp_path / "rec") as writer:
         writer.write(_frames([0], grey=True)[0])
     jpegs = [_camera_jpeg(i) for i in (0, 1, 2)]  # a resumed stream counts from 0 again
@@ -137,15 +143,15 @@ def test_a_cameras_jpeg_is_recorded_as_it_came_and_replays_as_the_session_saw_it
     assert files == ["frames/000000.png", "frames/000001.jpg", "frames/000002.jpg", "frames/000003.jpg"]
     assert [(tmp_path / "rec" / f).read_bytes() for f in files[1:]] == [f.encoded for f in jpegs]
     assert not list((tmp_path / "rec" / "frames").glob(".*"))  # no temporary file left behind
-    (tmp_path / "rec" / "frames" / "000002.jpg").write_bytes(jpegs[1].encoded[:40])  # cut short
+    (tmp_path / "rec" / "frames" / "000003.jpg").write_bytes(jpegs[2].encoded[:40])  # cut short
     source = open_source(tmp_path / "rec")
     read = list(source)
-    assert [f.index for f in read] == [0, 1, 3]
+    assert [f.index for f in read] == [0, 1, 2]
     assert read[0].encoded is None and read[0].image.ndim == 2
-    for replayed, live in zip(read[1:], (jpegs[0], jpegs[2]), strict=True):
+    for replayed, live in zip(read[1:], jpegs[:2], strict=True):
         assert replayed.encoded == live.encoded and np.array_equal(replayed.image, live.image)
         assert np.array_equal(replayed.colour(), cv2.imdecode(np.frombuffer(live.encoded, np.uint8), cv2.IMREAD_COLOR))
-    assert [s.index for s in source.skipped] == [2]
+    assert [s.index for s in source.skipped] == [3]
     assert source.skipped[0].reason.startswith("file does not decode as an image")
 
 
