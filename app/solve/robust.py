@@ -122,6 +122,10 @@ def robust_calibrate(
         return [DroppedCorner(frames[i].frame_index, int(cid), float(n))
                 for cid, n in zip(frames[i].ids[outs[i]], norms_out[i][outs[i]], strict=True)]
 
+    def kept_views() -> list[View]:
+        """The kept frames, each with its kept corners: what a round solves."""
+        return [_subset(f, o) for f, o in zip(frames, outs, strict=True)]
+
     def keep_frames(keep: list[bool]) -> None:
         nonlocal frames, outs, norms_out
         frames = [f for f, k in zip(frames, keep, strict=True) if k]
@@ -140,7 +144,7 @@ def robust_calibrate(
         whole solve when one view's is degenerate (seen on a 6-corner view at a 150 deg lens's
         edge). Such a frame is found by leaving out, one at a time, the frames with fewest corners."""
         try:
-            return solve([_subset(f, o) for f, o in zip(frames, outs, strict=True)], image_size, model, initial=start)
+            return solve(kept_views(), image_size, model, initial=start)
         except CalibrationError as failure:
             if model != "fisheye" or len(frames) <= 4:
                 raise
@@ -171,7 +175,7 @@ def robust_calibrate(
             return solve_kept(start.camera)
         if kept is not None:
             start = RawSolution(start.camera, start.rms_px, start.rvecs[kept], start.tvecs[kept])
-        refined = refined_from(start.camera, [_subset(f, o) for f, o in zip(frames, outs, strict=True)], start)
+        refined = refined_from(start.camera, kept_views(), start)
         assert refined is not None  # posed views: every pose is given
         return refined
 
@@ -195,9 +199,10 @@ def robust_calibrate(
                         f"{median_rms:.2f} px (defocus, motion blur or a misdetection)"
                     )))
                     dropped_corners.extend(corners_of(i))
-                keep_frames(list(~bad_frames))
+                good_frames = list(~bad_frames)
+                keep_frames(good_frames)
                 # the dropped frames pulled this solve: judge no corner against it
-                raw = resolved(raw, list(~bad_frames))
+                raw = resolved(raw, good_frames)
                 continue
         # 2. corners, against a solve no outlier frame pulls; the MAD sigma over all of them
         # (those set aside too) does not shrink as corners are set aside
@@ -218,7 +223,7 @@ def robust_calibrate(
         raw = resolved(raw, frames_kept)
     for i in range(len(frames)):
         dropped_corners.extend(corners_of(i))
-    kept = [_subset(f, o) for f, o in zip(frames, outs, strict=True)]
+    kept = kept_views()
     camera, rvecs, tvecs = raw.camera, raw.rvecs, raw.tvecs
     weights = view_weights(reprojection_residuals(camera, kept, rvecs, tvecs))
     if np.any(weights < 0.999) and len(kept) >= 3:
