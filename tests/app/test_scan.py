@@ -15,8 +15,9 @@ from calibcoach.app.replay import run_replay
 from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan, thumbnail
 from calibcoach.app.scan_stream import detected_frames
 from calibcoach.app.session import SessionSettings
+from calibcoach.coverage import detector as detector_module
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.detector import CharucoBoardDetector
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.select import SelectorSettings
 from calibcoach.drivers.replay import ImageFolderSource
 
@@ -106,6 +107,39 @@ def test_a_board_that_moves_further_than_tracking_reaches_is_detected_afresh(rec
     assert detector.track(_shifted(grey, 1.2, -0.8, rng), first) is not None
     assert detector.track(_shifted(grey, 6.0, 0.0, rng), first) is None  # past TRACK_MAX_SHIFT_PX
     assert detector.track(_demo_grey(recordings_dir, 60), first) is None  # another pose altogether
+
+
+def _grid_detection(corners: np.ndarray) -> Detection:
+    ids = np.arange(len(corners), dtype=np.int32)
+    return Detection(corners.astype(np.float32), ids, np.zeros((len(corners), 3), np.float32), ids)
+
+
+def test_a_held_boards_rigidity_test_allows_for_its_corner_noise_but_not_for_a_pulled_corner() -> None:
+    # 70 corners 50 px apart; the next frame the board moved rigidly by (1.1, -0.6) px. Each frame's
+    # corners carry their own noise: 0.15 px per coordinate on dim footage, 0.03 on a sharp board.
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(np.arange(10) * 50.0 + 300, np.arange(7) * 50.0 + 200), axis=-1).reshape(-1, 2)
+    move = np.array([1.1, -0.6])
+
+    def pair(noise_px: float, pull_px: float = 0.0) -> tuple[Detection, Detection]:
+        after = grid + move + rng.normal(0, noise_px, grid.shape)
+        after[33] += (pull_px, 0.0)  # one corner pulled toward a marker's edge
+        return _grid_detection(grid + rng.normal(0, noise_px, grid.shape)), _grid_detection(after)
+
+    # dim footage: the noise alone puts the worst corner past the 0.5 px floor in most frames...
+    worst = []
+    for _ in range(40):
+        before, after = pair(0.15)
+        design = np.column_stack([before.corners_px, np.ones(70)])
+        fit, *_ = np.linalg.lstsq(design, after.corners_px, rcond=None)
+        worst.append(np.linalg.norm(design @ fit - after.corners_px, axis=1).max())
+        shift = detector_module._shift_from(before, after)  # ...yet every frame is one rigid move
+        assert shift is not None and np.allclose(shift, move, atol=0.1)
+    assert np.mean(np.array(worst) > detector_module.TRACK_MAX_SPREAD_PX) > 0.5
+    # a corner pulled 1.5 px stands out at that noise, and 0.6 px on a sharp board (the floor)
+    assert detector_module._shift_from(*pair(0.15, pull_px=1.5)) is None
+    assert detector_module._shift_from(*pair(0.03, pull_px=0.6)) is None
+    assert detector_module._shift_from(*pair(0.03)) is not None
 
 
 def test_where_a_tracked_corner_stops_depends_on_the_refinements_stopping_step(recordings_dir: Path) -> None:

@@ -1,0 +1,140 @@
+"""The held-board tracker's rigidity test: a fixed 0.5 px against one that allows for the corners' noise.
+
+`CharucoBoardDetector.track` refuses a frame whose corners are not one rigid move of the frame
+before's: a corner off the others' affine map by more than `TRACK_MAX_SPREAD_PX` (0.5 px), or, since
+2026-12-05, by more than that *and* `TRACK_SPREAD_NOISE_SCALES` times the corners' own noise scale.
+On dim footage the corners' noise alone put the worst corner past 0.5 px on ~40% of held frames,
+each then detected in full on the scan's own thread.
+
+For every cached render given (bench/renders.py), `run_replay` + `finish` with the defaults, once
+with the fixed rule (`TRACK_SPREAD_NOISE_SCALES` = 0) and once with the noise allowed for; reported:
+the error against the lens truth over the covered region (bench/accuracy.py's `score`), frames
+tracked, seconds (in process), and the error ratio; then the geometric mean of the ratios per cell.
+`--corners` also compares, on each render's held frames where only the new rule tracks, the tracked
+corners (after the masked refinement the final solve takes) with the frame's own fresh detection,
+both against the truth.
+
+    .venv/bin/python bench/track_rigidity.py [--renders dim720_mjpg_s101 ...] [--corners] [--out track_rigidity]
+
+Without --renders: every render in bench/cache. Writes bench/results/<out>.md and .json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+
+from heldout import calibcoach_run, detect_all  # noqa: E402  (bench/heldout.py)
+from renders import CACHE, cached_renders, capture_path  # noqa: E402
+
+import calibcoach.coverage.detector as detector_module  # noqa: E402
+from calibcoach.app.scan import board_shift_px  # noqa: E402
+from calibcoach.coverage.board import BoardSpec  # noqa: E402
+from calibcoach.coverage.corner_refine import refine_on_checker_edges  # noqa: E402
+from calibcoach.coverage.sharpness import edge_blur  # noqa: E402
+from calibcoach.drivers.recording import read_truth  # noqa: E402
+from calibcoach.drivers.replay import open_source  # noqa: E402
+
+RULES = {"fixed 0.5 px": 0.0, "noise allowed for": detector_module.TRACK_SPREAD_NOISE_SCALES}
+
+
+def replays(name: str) -> dict[str, dict]:
+    cell, seed = name.rsplit("_s", 1)
+    path = capture_path(cell, int(seed))
+    truth = read_truth(CACHE / name)
+    found, _seconds = detect_all(path)
+    yardstick = [d.corners_px for _i, d in sorted(found.items()) if d.corner_count >= 6]
+    rows = {}
+    try:
+        for rule, scales in RULES.items():
+            detector_module.TRACK_SPREAD_NOISE_SCALES = scales
+            run = calibcoach_run(path, truth.camera, yardstick, every_frame=False)
+            rows[rule] = {"error_px": run.error_px, "frames": run.frames, "verdict": run.outcome,
+                          "seconds": run.seconds, "tracked": run.extra.get("tracked")}
+    finally:
+        detector_module.TRACK_SPREAD_NOISE_SCALES = RULES["noise allowed for"]
+    return rows
+
+
+def corner_errors(name: str) -> dict[str, float]:
+    """Median corner error against the truth, tracked vs fresh, on held frames only the new rule tracks."""
+    cell, seed = name.rsplit("_s", 1)
+    truth = read_truth(CACHE / name)
+    poses = {i: (r, t) for i, r, t in truth.poses}
+    spec = BoardSpec()
+    every_corner = spec.corner_points_m()
+    detector = detector_module.CharucoBoardDetector(spec)
+
+    def error(grey: np.ndarray, found, index: int) -> float:
+        blur = edge_blur(grey, found.corners_px, found.object_points_m).blur_px
+        refined = refine_on_checker_edges(grey, found.corners_px, found.object_points_m, spec.square_mm / 1000,
+                                          spec.marker_mm / 1000, blur_sigma_px=blur)
+        true = truth.camera.project(every_corner[found.ids], *poses[index])
+        return float(np.median(np.linalg.norm(refined - true, axis=1)))
+
+    tracked, fresh = [], []
+    previous = None
+    for frame in open_source(capture_path(cell, int(seed))):
+        grey = frame.grey()
+        found = detector.detect(grey)
+        if previous is not None and min(previous.corner_count, found.corner_count) >= 6 and frame.index in poses \
+                and board_shift_px(previous, found) <= 2.0:
+            detector_module.TRACK_SPREAD_NOISE_SCALES = 0.0
+            before = detector.track(grey, previous)
+            detector_module.TRACK_SPREAD_NOISE_SCALES = RULES["noise allowed for"]
+            after = detector.track(grey, previous)
+            if before is None and after is not None:
+                tracked.append(error(grey, after, frame.index))
+                fresh.append(error(grey, found, frame.index))
+        previous = found
+    return {"frames": len(tracked), "tracked_px": float(np.median(tracked)) if tracked else float("nan"),
+            "fresh_px": float(np.median(fresh)) if fresh else float("nan")}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--renders", nargs="+", help="e.g. dim720_mjpg_s101 (default: every cached render)")
+    parser.add_argument("--corners", action="store_true", help="also compare tracked and fresh corners against the truth")
+    parser.add_argument("--out", default="track_rigidity")
+    args = parser.parse_args()
+    names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
+    results = {}
+    lines = ["| render | fixed 0.5 px: error, px | tracked | s | noise allowed for: error, px | tracked | s | ratio |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name in names:
+        rows = replays(name)
+        if args.corners:
+            rows["corners"] = corner_errors(name)
+        results[name] = rows
+        a, b = rows["fixed 0.5 px"], rows["noise allowed for"]
+        line = (f"| {name} | {a['error_px']:.4f} ({a['verdict']}) | {a['tracked']} | {a['seconds']:.1f} | "
+                f"{b['error_px']:.4f} ({b['verdict']}) | {b['tracked']} | {b['seconds']:.1f} | {b['error_px'] / a['error_px']:.2f} |")
+        lines.append(line)
+        print(line, flush=True)
+    lines += ["", "| cell | renders | geometric mean of the ratios | better / same / worse |", "|---|---|---|---|"]
+    for cell in sorted({n.rsplit("_s", 1)[0] for n in results}):
+        ratios = np.array([r["noise allowed for"]["error_px"] / r["fixed 0.5 px"]["error_px"]
+                           for n, r in results.items() if n.rsplit("_s", 1)[0] == cell])
+        lines.append(f"| {cell} | {ratios.size} | {np.exp(np.mean(np.log(ratios))):.2f} | "
+                     f"{int((ratios < 0.999).sum())} / {int((np.abs(ratios - 1) <= 0.001).sum())} / {int((ratios > 1.001).sum())} |")
+    if args.corners:
+        lines += ["", "| render | frames only the new rule tracks | their tracked corners vs truth, px (median) | "
+                  "their fresh detections' | ", "|---|---|---|---|"]
+        for name, rows in results.items():
+            c = rows["corners"]
+            lines.append(f"| {name} | {c['frames']} | {c['tracked_px']:.4f} | {c['fresh_px']:.4f} |")
+    (ROOT / "results" / f"{args.out}.md").write_text("\n".join(lines) + "\n")
+    (ROOT / "results" / f"{args.out}.json").write_text(json.dumps(results, indent=1))
+    print("\n".join(lines[len(names) + 2:]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
