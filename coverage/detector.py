@@ -224,6 +224,10 @@ TRACK_MAX_SPREAD_PX = 0.5
 # truth against their fresh detections' 0.100 (careful renders, 0.03 px noise: not one track changes).
 TRACK_SPREAD_NOISE_SCALES = 5.0
 _RAYLEIGH_MEDIAN = 1.1774  # median / scale of a Rayleigh distribution: sqrt(2 ln 2)
+# The noise is read off the corners only where there are enough of them: the affine map has 3
+# parameters a coordinate, and with a handful of corners it absorbs much of a pulled corner's
+# error, spreading it over the rest, whose median then excuses it.
+TRACK_NOISE_MIN_CORNERS = 12
 
 
 def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
@@ -240,7 +244,7 @@ def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
     design = np.column_stack([before, np.ones(len(before))])
     affine, *_ = np.linalg.lstsq(design, after, rcond=None)
     off_map = np.linalg.norm(design @ affine - after, axis=1)
-    noise_scale = float(np.median(off_map)) / _RAYLEIGH_MEDIAN
+    noise_scale = float(np.median(off_map)) / _RAYLEIGH_MEDIAN if ia.size >= TRACK_NOISE_MIN_CORNERS else 0.0
     if off_map.max() > max(TRACK_MAX_SPREAD_PX, TRACK_SPREAD_NOISE_SCALES * noise_scale):
         return None
     return np.median(moves, axis=0)
