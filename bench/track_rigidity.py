@@ -15,6 +15,7 @@ corners (after the masked refinement the final solve takes) with the frame's own
 both against the truth.
 
     .venv/bin/python bench/track_rigidity.py [--renders dim720_mjpg_s101 ...] [--corners] [--out track_rigidity]
+    .venv/bin/python bench/track_rigidity.py --merge bench/results/a.json bench/results/b.json --out track_rigidity
 
 Without --renders: every render in bench/cache. Writes bench/results/<out>.md and .json.
 """
@@ -103,37 +104,56 @@ def main() -> int:
     parser.add_argument("--renders", nargs="+", help="e.g. dim720_mjpg_s101 (default: every cached render)")
     parser.add_argument("--corners", action="store_true", help="also compare tracked and fresh corners against the truth")
     parser.add_argument("--out", default="track_rigidity")
+    parser.add_argument("--merge", nargs="+", type=Path, help="only summarise these earlier .json results together")
     args = parser.parse_args()
-    names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
-    results = {}
-    lines = ["| render | fixed 0.5 px: error, px | tracked | s | noise allowed for: error, px | tracked | s | ratio |",
-             "|---|---|---|---|---|---|---|---|"]
-    for name in names:
-        rows = replays(name)
-        if args.corners:
-            rows["corners"] = corner_errors(name)
-        results[name] = rows
-        a, b = rows["fixed 0.5 px"], rows["noise allowed for"]
-        line = (f"| {name} | {a['error_px']:.4f} ({a['verdict']}) | {a['tracked']} | {a['seconds']:.1f} | "
-                f"{b['error_px']:.4f} ({b['verdict']}) | {b['tracked']} | {b['seconds']:.1f} | {b['error_px'] / a['error_px']:.2f} |")
-        lines.append(line)
-        print(line, flush=True)
-    lines += ["", "| cell | renders | geometric mean of the ratios | better / same / worse |", "|---|---|---|---|"]
-    for cell in sorted({n.rsplit("_s", 1)[0] for n in results}):
+    results: dict[str, dict] = {}
+    if args.merge:  # renders measured in several runs (rendered at different times)
+        for path in args.merge:
+            results.update(json.loads(path.read_text()))
+    else:
+        for name in args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]:
+            results[name] = replays(name)
+            if args.corners:
+                results[name]["corners"] = corner_errors(name)
+            print(_row(name, results[name]), flush=True)
+    lines = ["# The tracker's rigidity test: a fixed 0.5 px against one that allows for the corners' noise", "",
+             "`bench/track_rigidity.py`: each render replayed with each rule (`run_replay` + `finish`, defaults); error "
+             "against the lens truth over the covered region; seconds in process, with renders and other benches "
+             "running beside them on this 2-core host (compare within a row only).", "",
+             "| render | fixed 0.5 px: error, px | tracked | s | noise allowed for: error, px | tracked | s | ratio |",
+             "|---|---|---|---|---|---|---|---|", *(_row(name, rows) for name, rows in results.items())]
+    lines += ["", "| cell | renders | error ratio, geometric mean [95% bootstrap interval] | better / same / worse |",
+              "|---|---|---|---|"]
+    cells = sorted({n.rsplit("_s", 1)[0] for n in results})
+    for label, chosen in [*((c, [c]) for c in cells), ("every dim render", [c for c in cells if c.startswith("dim")])]:
         ratios = np.array([r["noise allowed for"]["error_px"] / r["fixed 0.5 px"]["error_px"]
-                           for n, r in results.items() if n.rsplit("_s", 1)[0] == cell])
-        lines.append(f"| {cell} | {ratios.size} | {np.exp(np.mean(np.log(ratios))):.2f} | "
-                     f"{int((ratios < 0.999).sum())} / {int((np.abs(ratios - 1) <= 0.001).sum())} / {int((ratios > 1.001).sum())} |")
-    if args.corners:
+                           for n, r in results.items() if n.rsplit("_s", 1)[0] in chosen])
+        if ratios.size:
+            lines.append(f"| {label} | {ratios.size} | {_geometric_mean_interval(ratios)} | {int((ratios < 0.999).sum())} / "
+                         f"{int((np.abs(ratios - 1) <= 0.001).sum())} / {int((ratios > 1.001).sum())} |")
+    with_corners = {name: rows["corners"] for name, rows in results.items() if "corners" in rows}
+    if with_corners:
         lines += ["", "| render | frames only the new rule tracks | their tracked corners vs truth, px (median) | "
-                  "their fresh detections' | ", "|---|---|---|---|"]
-        for name, rows in results.items():
-            c = rows["corners"]
-            lines.append(f"| {name} | {c['frames']} | {c['tracked_px']:.4f} | {c['fresh_px']:.4f} |")
+                  "their fresh detections' |", "|---|---|---|---|"]
+        lines += [f"| {name} | {c['frames']} | {c['tracked_px']:.4f} | {c['fresh_px']:.4f} |" for name, c in with_corners.items()]
     (ROOT / "results" / f"{args.out}.md").write_text("\n".join(lines) + "\n")
     (ROOT / "results" / f"{args.out}.json").write_text(json.dumps(results, indent=1))
-    print("\n".join(lines[len(names) + 2:]))
+    print("\n".join(lines[len(results) + 6:]))
     return 0
+
+
+def _geometric_mean_interval(ratios: np.ndarray, draws: int = 20_000) -> str:
+    """The geometric mean of `ratios` with a 95% bootstrap interval (the same draws every time)."""
+    logs = np.log(ratios)
+    means = logs[np.random.default_rng(0).integers(0, logs.size, (draws, logs.size))].mean(axis=1)
+    low, high = np.exp(np.percentile(means, [2.5, 97.5]))
+    return f"{np.exp(logs.mean()):.2f} [{low:.2f}, {high:.2f}]"
+
+
+def _row(name: str, rows: dict) -> str:
+    a, b = rows["fixed 0.5 px"], rows["noise allowed for"]
+    return (f"| {name} | {a['error_px']:.4f} ({a['verdict']}) | {a['tracked']} | {a['seconds']:.1f} | "
+            f"{b['error_px']:.4f} ({b['verdict']}) | {b['tracked']} | {b['seconds']:.1f} | {b['error_px'] / a['error_px']:.2f} |")
 
 
 if __name__ == "__main__":

@@ -217,11 +217,14 @@ TRACK_MAX_SPREAD_PX = 0.5
 # ... unless the corners' own noise scatters them that far: off the affine map, each corner's
 # distance is the noise of two frames' corners, Rayleigh-distributed, whose scale its median
 # gives (median = 1.1774 scale). Noise alone puts one corner of 88 past 5 scales once in ~3000
-# frames, a corner pulled to the wrong place stands out against the others at any noise. On a
-# dim 720p render (0.15 px corner noise) the fixed 0.5 px turned 112 of 260 held frames into full
-# detections on the thread that sees the frames; with the noise allowed for they are tracked, and
-# after the masked refinement the final solve takes their corners lie 0.098 px (median) from the
-# truth against their fresh detections' 0.100 (careful renders, 0.03 px noise: not one track changes).
+# frames; a corner pulled further than that still stands out. On dim 720p renders (~0.15 px
+# corner noise) the fixed 0.5 px sent 57-130 held frames of each (of ~260) to full detections
+# on the thread that sees the frames; with the noise allowed for they are tracked, and after the
+# masked refinement the final solve takes their corners lie as near the truth as their fresh
+# detections' (0.086-0.105 px against 0.088-0.107, median per render, 12 renders). Replays of
+# those 12: 10-20% faster, error against the truth 0.87x [0.69, 1.11] (geometric mean, 7 better,
+# 5 worse); careful, shaky, messy and wide renders track the same frames (0.03 px noise), the
+# fisheye 4 more (bench/results/track_rigidity.md).
 TRACK_SPREAD_NOISE_SCALES = 5.0
 _RAYLEIGH_MEDIAN = 1.1774  # median / scale of a Rayleigh distribution: sqrt(2 ln 2)
 # The noise is read off the corners only where there are enough of them: the affine map has 3
