@@ -224,7 +224,7 @@ TRACK_MAX_SPREAD_PX = 0.5
 # detections' (0.086-0.105 px against 0.088-0.107, median per render, 12 renders). Replays of
 # those 12: 10-20% faster, error against the truth 0.87x [0.69, 1.11] (geometric mean, 7 better,
 # 5 worse); careful, shaky, messy and wide renders track the same frames (0.03 px noise), the
-# fisheye 4 more (bench/results/track_rigidity.md).
+# fisheye 1-4 more (3 renders, 0.96x the error; bench/results/track_rigidity.md).
 TRACK_SPREAD_NOISE_SCALES = 5.0
 _RAYLEIGH_MEDIAN = 1.1774  # median / scale of a Rayleigh distribution: sqrt(2 ln 2)
 # The noise is read off the corners only where there are enough of them: the affine map has 3
