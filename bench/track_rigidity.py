@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -37,13 +39,22 @@ from renders import CACHE, cached_renders, capture_path  # noqa: E402
 
 import calibcoach.coverage.detector as detector_module  # noqa: E402
 from calibcoach.app.scan import board_shift_px  # noqa: E402
+from calibcoach.app.session_finish import frame_view  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
-from calibcoach.coverage.corner_refine import refine_on_checker_edges  # noqa: E402
-from calibcoach.coverage.sharpness import edge_blur  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 RULES = {"fixed 0.5 px": 0.0, "noise allowed for": detector_module.TRACK_SPREAD_NOISE_SCALES}
+
+
+@contextmanager
+def rule(name: str) -> Iterator[None]:
+    """The tracker's rigidity test as `RULES[name]` inside the block, the module's own after it."""
+    detector_module.TRACK_SPREAD_NOISE_SCALES = RULES[name]
+    try:
+        yield
+    finally:
+        detector_module.TRACK_SPREAD_NOISE_SCALES = RULES["noise allowed for"]
 
 
 def replays(name: str) -> dict[str, dict]:
@@ -53,14 +64,11 @@ def replays(name: str) -> dict[str, dict]:
     found, _seconds = detect_all(path)
     yardstick = [d.corners_px for _i, d in sorted(found.items()) if d.corner_count >= 6]
     rows = {}
-    try:
-        for rule, scales in RULES.items():
-            detector_module.TRACK_SPREAD_NOISE_SCALES = scales
+    for name_of_rule in RULES:
+        with rule(name_of_rule):
             run = calibcoach_run(path, truth.camera, yardstick, every_frame=False)
-            rows[rule] = {"error_px": run.error_px, "frames": run.frames, "verdict": run.outcome,
-                          "seconds": run.seconds, "tracked": run.extra.get("tracked")}
-    finally:
-        detector_module.TRACK_SPREAD_NOISE_SCALES = RULES["noise allowed for"]
+        rows[name_of_rule] = {"error_px": run.error_px, "frames": run.frames, "verdict": run.outcome,
+                              "seconds": run.seconds, "tracked": run.extra.get("tracked")}
     return rows
 
 
@@ -73,11 +81,9 @@ def corner_errors(name: str) -> dict[str, float]:
     every_corner = spec.corner_points_m()
     detector = detector_module.CharucoBoardDetector(spec)
 
-    def error(grey: np.ndarray, found, index: int) -> float:
-        blur = edge_blur(grey, found.corners_px, found.object_points_m).blur_px
-        refined = refine_on_checker_edges(grey, found.corners_px, found.object_points_m, spec.square_mm / 1000,
-                                          spec.marker_mm / 1000, blur_sigma_px=blur)
-        true = truth.camera.project(every_corner[found.ids], *poses[index])
+    def error(frame, found) -> float:  # the corners as the final solve takes them (masked refinement)
+        refined = frame_view(frame, found, spec).as_refined().image_points_px
+        true = truth.camera.project(every_corner[found.ids], *poses[frame.index])
         return float(np.median(np.linalg.norm(refined - true, axis=1)))
 
     tracked, fresh = [], []
@@ -87,13 +93,12 @@ def corner_errors(name: str) -> dict[str, float]:
         found = detector.detect(grey)
         if previous is not None and min(previous.corner_count, found.corner_count) >= 6 and frame.index in poses \
                 and board_shift_px(previous, found) <= 2.0:
-            detector_module.TRACK_SPREAD_NOISE_SCALES = 0.0
-            before = detector.track(grey, previous)
-            detector_module.TRACK_SPREAD_NOISE_SCALES = RULES["noise allowed for"]
+            with rule("fixed 0.5 px"):
+                before = detector.track(grey, previous)
             after = detector.track(grey, previous)
             if before is None and after is not None:
-                tracked.append(error(grey, after, frame.index))
-                fresh.append(error(grey, found, frame.index))
+                tracked.append(error(frame, after))
+                fresh.append(error(frame, found))
         previous = found
     return {"frames": len(tracked), "tracked_px": float(np.median(tracked)) if tracked else float("nan"),
             "fresh_px": float(np.median(fresh)) if fresh else float("nan")}
