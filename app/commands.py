@@ -249,6 +249,9 @@ def _finish_replay(args, argv, source, info, session, stats, viewer) -> int:
         rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(result.rejections.items(), key=lambda kv: -kv[1])
                              if n and reason != "accepted")
         added, reserve = session.budget_fill
+        if result.smeared_left_out:
+            stages.say(f"calibcoach: {result.exposure}; {result.smeared_left_out} usable frames left out as smeared over "
+                       f"{session.settings.selector.max_solve_smear_px:.1f} px in it")
         stages.say(f"calibcoach: rejected {rejected or 'nothing'}; the final solve also took {added} of {reserve} usable "
                    "frames held in reserve (poses of their own first, then repeats of every hold alike)")
         stages("outputs")

@@ -22,6 +22,7 @@ from calibcoach.app.scan_stream import ScanStream
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
+from calibcoach.coverage.exposure import corner_velocities, worst_corner_speed_px_s
 from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.coverage.select import board_speed_px_s
 from calibcoach.drivers.base import Frame, FrameSource
@@ -114,6 +115,8 @@ class _Feeder:
         self._usable: dict[int, str] = {}  # fully detected frame -> "usable", "moving" or "unusable"
         self._last_full: Seen | None = None
         self._last_seen: Seen | None = None  # the frame before the one being fed
+        self._two_before: Seen | None = None  # ... and the one before that
+        self._corner_speeds: dict[int, float | None] = {}  # tracked frame -> its fastest corner's speed across it, px/s
 
     @property
     def session(self) -> CalibrationSession | None:
@@ -125,6 +128,8 @@ class _Feeder:
             for seen in stream:
                 self.read += 1
                 before, self._last_seen = self._last_seen, seen
+                self._two_before, two_before = before, self._two_before
+                self._note_velocities(two_before, before, seen)
                 if seen.skipped and self.session is not None:
                     self.session.add_held_repeats([(seen.frame, seen.detection)], usable=False)  # counted as seen
                     continue
@@ -148,6 +153,17 @@ class _Feeder:
             if close is not None:
                 close()
             self._settle_holds(final=True)
+
+    def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen) -> None:
+        """The corners' velocities across `middle`, from its own neighbours: the session, which judges
+        only some frames, takes them for a judged frame; a tracked frame's fastest corner is kept for its hold."""
+        if before is None or middle is None or self.session is None:
+            return
+        sides = (before.detection, before.frame.timestamp_ns), (after.detection, after.frame.timestamp_ns)
+        if middle.tracked_from is None:
+            self.session.smear.give(middle.frame.index, *sides)
+        else:
+            self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(corner_velocities(*sides[0], *sides[1]))
 
     def _track(self, seen: Seen, before: Seen | None) -> None:
         assert self._last_full is not None
@@ -209,8 +225,10 @@ class _Feeder:
                 judged = sorted((hold.before, hold.after), key=lambda i: self._usable.get(i) != "usable")
                 hold_blur = session.hold_blur_px(judged)
                 blurs = [hold_blur if edges is None else edges.blur_px for edges in own]
+            speeds_px_s = [self._corner_speeds.pop(f.index, None) for f, _d, _s in hold.repeats]
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if ok], usable=usable,
-                                     blur_px=[b for b, ok in zip(blurs, still, strict=True) if ok])
+                                     blur_px=[b for b, ok in zip(blurs, still, strict=True) if ok],
+                                     corner_speeds_px_s=[v for v, ok in zip(speeds_px_s, still, strict=True) if ok])
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
 
 

@@ -49,6 +49,7 @@ from calibcoach.coverage.candidates import (
     reachable_cells,
 )
 from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.exposure import SmearLedger, worst_corner_speed_px_s
 from calibcoach.coverage.grid import CoverageMap, region_grid_shape
 from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.select import (
@@ -137,6 +138,7 @@ class CalibrationSession(SessionFinish):
         self.focus_drift: str | None = None  # what moved, in words (app/focus_watch.py)
         # [start, end) frame indices taken at a drifted focus: left out of the final solve (end None: to the end)
         self.drifted_ranges: list[tuple[int, int | None]] = []
+        self.smear = SmearLedger()  # each usable frame's corner speed and the exposure read off the frames
         self._refresh_lens()
         self._rank()
 
@@ -159,7 +161,8 @@ class CalibrationSession(SessionFinish):
         return self.camera
 
     def add_held_repeats(self, repeats: Sequence[tuple[Frame, Detection]], *, usable: bool,
-                         blur_px: Sequence[float | None] | None = None) -> None:
+                         blur_px: Sequence[float | None] | None = None,
+                         corner_speeds_px_s: Sequence[float | None] | None = None) -> None:
         """Frames a replay tracked through a hold instead of detecting them (app/scan.py).
 
         `usable`: the session judged a fully detected frame of the same hold usable (sharp, enough
@@ -167,12 +170,14 @@ class CalibrationSession(SessionFinish):
         join the reserve, from which the final solve takes them to average each pose's corner noise
         (`_fill_budget`); otherwise they are only counted as seen. `blur_px`: each repeat's edge blur
         where already known (`hold_blur_px`, or its own from `sharp_edges`), for the masked corners'
-        margin; None entries are measured on the repeat's image.
+        margin; None entries are measured on the repeat's image. `corner_speeds_px_s`: each repeat's
+        fastest corner's speed across it, by which the final solve judges its smear (`SmearLedger`).
         """
         for i, (frame, detection) in enumerate(repeats):
             self.frames_seen += 1
             if usable and detection.corner_count >= self.settings.selector.min_corners and not self._drifted(frame.index):
                 self._reserve.append((self._view(frame, detection, blur_px=None if blur_px is None else blur_px[i]), 1.0))
+                self.smear.record(frame.index, None if corner_speeds_px_s is None else corner_speeds_px_s[i])
 
     def hold_blur_px(self, frame_indices: Sequence[int | None]) -> float | None:
         """The edge blur measured on the first of `frame_indices` (a hold's judged frames) that had it measured.
@@ -215,6 +220,8 @@ class CalibrationSession(SessionFinish):
         if len(self._samples) < _SAMPLE_FRAMES_FOR_DIAGNOSIS and detection.corner_count == 0 and self.frames_seen % 5 == 1:
             self._samples.append(frame.grey())
         motion = self._motion_px_s(frame, detection, following)
+        velocities = self.smear.velocities(frame.index, (detection, frame.timestamp_ns), self._previous, following)
+        self.smear.saw(frame.index, frame.timestamp_ns)
         previous = self._previous[0]
         just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
         self._previous = (detection, frame.timestamp_ns)
@@ -230,6 +237,7 @@ class CalibrationSession(SessionFinish):
         if gated is None:
             edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
             blur = edges.sharp_px
+            self.smear.reader.add(edges, velocities)
             self._judged_blur[frame.index] = edges.blur_px
             if len(self._judged_blur) > _JUDGED_BLUR_KEPT:
                 del self._judged_blur[next(iter(self._judged_blur))]  # the oldest: its holds have been settled
@@ -243,6 +251,8 @@ class CalibrationSession(SessionFinish):
         else:
             decision, contribution = gated, None
         self.selector.record(decision)
+        if decision.accepted or decision.quality >= 1.0:  # may enter the final solve, unless it smeared (`finish`)
+            self.smear.record(frame.index, worst_corner_speed_px_s(velocities))
         if not decision.accepted and decision.quality >= 1.0:
             self._reserve.append((self._view(frame, detection, edges), decision.quality))  # usable later: see _fill_budget
         if decision.accepted and contribution is not None:

@@ -54,6 +54,7 @@ _FOV_GUESS_MARGIN_DEG = 5.0
 if TYPE_CHECKING:
     from calibcoach.app.session_types import SessionSettings
     from calibcoach.coverage.board import BoardSpec
+    from calibcoach.coverage.exposure import ExposureReading, SmearLedger
     from calibcoach.coverage.pose import BoardPose
     from calibcoach.coverage.select import FrameSelector
     from calibcoach.coverage.virtual_view import BoardGeometry
@@ -114,6 +115,9 @@ class SessionFinish:
     _samples: list[np.ndarray]
     board_mismatch: BoardError | None
     _final_poses: tuple[CameraModel, dict[int, BoardPose | None]] | None = None  # see _poses_under
+    smear: SmearLedger
+    exposure: ExposureReading | None = None  # as the final solve read it (`_leave_out_smeared`)
+    smeared_left_out: int = 0  # usable frames the final solve left out as smeared
 
     @property
     def refines_corners(self) -> bool:
@@ -153,6 +157,7 @@ class SessionFinish:
         "uncertainty", "verdict": `progress.SOLVE_STAGES`), for a progress bar.
         """
         stage = on_stage or (lambda _name: None)
+        self._leave_out_smeared()
         if self.drifted_ranges:  # taken at another focus: another camera
             self.views = [v for v in self.views if not self._drifted(v.frame_index)]
             self._reserve = [(v, q) for v, q in self._reserve if not self._drifted(v.frame_index)]
@@ -278,7 +283,24 @@ class SessionFinish:
             stop_reason=self.stop_reason,
             residual_structure=structure,
             reachable_error_px=reachable_error,
+            smeared_left_out=self.smeared_left_out,
+            exposure="" if self.exposure is None else self.exposure.describe(),
         )
+
+    def _leave_out_smeared(self) -> None:
+        """Frames whose fastest corner moved more than `SelectorSettings.max_solve_smear_px` within the
+        exposure, as read off the whole capture (coverage/exposure.py), never enter the final solve.
+
+        During the capture each frame was judged by its own edges, which show a smear of 2 px only
+        faintly on a noisy frame; by the end the capture's moving frames have shown the exposure,
+        and each frame's speed across it is known from its neighbours.
+        """
+        indices = [v.frame_index for v in self.views] + [v.frame_index for v, _q in self._reserve]
+        smeared, self.exposure = self.smear.smeared(indices, self.settings.selector.max_solve_smear_px)
+        if smeared:
+            self.views = [v for v in self.views if v.frame_index not in smeared]
+            self._reserve = [(v, q) for v, q in self._reserve if v.frame_index not in smeared]
+        self.smeared_left_out = len(smeared)
 
     def _fill_budget(self) -> None:
         """Spend the unused frame budget on distinct reserve frames that shrink the uncertainty most.

@@ -118,3 +118,6 @@ class SessionResult:
     residual_structure: ResidualStructure | None = None
     # E over every image point a board can be seen in, covered or not: what short coverage is judged on
     reachable_error_px: float = float("nan")
+    # usable frames the final solve left out as smeared, and the exposure they were judged by (coverage/exposure.py)
+    smeared_left_out: int = 0
+    exposure: str = ""

@@ -54,6 +54,9 @@ class Cell:
     low_light: bool
     fps: float
     seconds: float
+    # image motion between the sub-frames of a smear (drivers/sim.py): at the default 2 px a smear
+    # under ~4 px renders sharp; the "smooth" cells render everything over ~1 px as a smear
+    smear_step_px: float = 2.0
 
     @property
     def frames(self) -> int:
@@ -72,6 +75,11 @@ CELLS: dict[str, Cell] = {
     "careful720_mjpg": Cell("webcam720", "careful", 1.0, "mjpg", False, 30.0, 784 / 30),
     "dim720_png": Cell("webcam720", "careful", 2.0, "png", True, 30.0, 784 / 30),
     "messy720_png": Cell("webcam720", "sloppy", 1.0, "png", False, 30.0, 784 / 30),
+    # The cells above render a smear under ~4 px (at the paper's corners) as a sharp frame, so the
+    # smear a held board's tremor makes never shows in them; these render it (2026-12-05).
+    "smooth_dim720_mjpg": Cell("webcam720", "careful", 2.0, "mjpg", True, 30.0, 784 / 30, smear_step_px=0.5),
+    "smooth_careful720_png": Cell("webcam720", "careful", 1.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
+    "smooth_shaky720_png": Cell("webcam720", "careful", 4.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
 }
 # Seeds no tuning of calibcoach has used (the unit tests, guided bench and recordings use 0-9).
 SEEDS = (101, 102, 103, 104, 105)
@@ -107,7 +115,7 @@ def render(name: str, seed: int) -> Path:
     trajectory = handheld_trajectory(camera, spec, cell.style, seconds=cell.seconds, seed=seed, tremor_scale=cell.tremor)
     poses = trajectory.sample(seconds=cell.seconds, fps=cell.fps)
     source = SimulatedCamera(camera, spec, poses, seed=seed, lens_name=cell.lens, trajectory=trajectory,
-                             low_light=cell.low_light, exposure_s=exposure_s)
+                             low_light=cell.low_light, exposure_s=exposure_s, smear_step_px=cell.smear_step_px)
     start = time.perf_counter()
     writer = None
     if cell.container == "png":

@@ -35,15 +35,25 @@ REJECT_REASONS = ("no board", "too few corners", "collinear", "moving", "blurred
 class SelectorSettings:
     min_corners: int = MIN_FRAME_CORNERS
     min_spread: float = 0.25  # minor/major principal spread of the corners on the board; 0 = a line
-    # Smear within the exposure, px. Measured on renders (720p, uniform smear centred on the frame's
-    # time): corners keep their accuracy (bias < 0.01 px, noise unchanged) up to 3 px and start to be
-    # lost at 4 px; 1.5 px keeps half that margin for what renders lack (acceleration during the
-    # exposure, rolling shutter), and lies above the measure's own scatter (~0.5 px) on still frames.
+    # Smear within the exposure, px, as a frame's own edges show it (live). Measured first on renders
+    # that drew a smear under ~4 px as a sharp frame ("up to 3 px corners keep their accuracy"); on
+    # renders that smear every motion they keep it to 8 px at normal light and lose 5-13% in low light
+    # (`max_solve_smear_px`). 1.5 px leaves that margin for what renders lack (acceleration during
+    # the exposure, rolling shutter), and lies above the measure's own scatter (~0.5 px) on still frames.
     max_smear_px: float = 1.5
     # ... counted only where it widens the edges by more than this over their reference: the edge
     # width measure scatters by ~5% between frames of one camera (3 sigma), and a smear that widens
     # a soft image's edges by less changes its corners by less than that.
     min_smear_widening: float = 1.15
+    # The smear no frame of the final solve may have, read at its end from each frame's
+    # fastest corner's speed times the exposure read off the whole capture (coverage/exposure.py).
+    # Measured on renders that smear every motion over ~1 px (bench/results/smear_corners.md, 8
+    # renders): a frame's corners after a pose fit under the true lens keep the residuals of still
+    # frames (0.76-1.01 of them) up to 8 px at normal light, where the smear averages noise away;
+    # in low light they lose 5-13% from 1.5 px on, and at 4-6 px 8%, 13% and 27% on the three renders.
+    # Leaving out everything over 1.5 px cost accuracy (bench/results/smear_filter_1.5px.md: the
+    # frames carry poses the solve needs); at 4 px, 0-4 frames a render, 1.00x over 29 renders.
+    max_solve_smear_px: float = 4.0
     # The speed hint until the camera's own sharpness is known, at 1280 px width (scaled): 0.5 px
     # of smear in a 20 ms exposure. Only for the first three kept frames.
     max_speed_px_s: float = 25.0

@@ -41,6 +41,9 @@ class EdgeBlur:
 
     across_x_px: float  # edges running along the board's x axis (their normal is across it)
     across_y_px: float  # edges running along the board's y axis
+    # the two families' unit normals in the image, ((x, y) of the x family, (x, y) of the y family):
+    # how much of a motion widens each (coverage/exposure.py); None where no widths were measured
+    normals: tuple[tuple[float, float], tuple[float, float]] | None = None
 
     @property
     def sharp_px(self) -> float:
@@ -122,7 +125,7 @@ def edge_blur(grey: np.ndarray, corners_px: np.ndarray, object_points_m: np.ndar
         g_max = float(upper_percentile(strong_mag[family], 95))
         sigma = contrast / (np.sqrt(2 * np.pi) * g_max)
         widths[name] = float(np.sqrt(max(sigma * sigma - _SAMPLING_FLOOR_PX**2, 0.0)))
-    return EdgeBlur(widths["x"], widths["y"])
+    return EdgeBlur(widths["x"], widths["y"], (tuple(map(float, normals["x"])), tuple(map(float, normals["y"]))))  # type: ignore[arg-type]
 
 
 def percentile_spread(values: np.ndarray, low_pct: float, high_pct: float) -> float:

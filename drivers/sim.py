@@ -142,7 +142,12 @@ class SimulatedCamera(FrameSource):
             on its own as in sequence.
         lens_name: used in `camera_id` ("sim:<lens_name>"); default: the preset's name or "custom".
         vignetting: brightness lost at the image corners (0.2 = 20%, typical of small webcam lenses).
-        exposure_s: exposure time; motion during it smears the board (sub-frames, 2 px apart, at most 8).
+        exposure_s: exposure time; motion during it smears the board (sub-frames `smear_step_px` apart, at most 8).
+        smear_step_px: image motion between the sub-frames of a smear. At 2 px (the default, which
+            the cached renders and tests were made with) each half of the exposure moving up to 2 px
+            renders as one sharp sub-frame, so smears under ~4 px at the paper's corners do not show
+            at all; 0.5 px renders everything over ~1 px as a smear (~1.5x the render time of a
+            handheld 720p capture).
         supersample: samples per pixel along each axis.
         trajectory: the continuous path the poses were sampled from (`handheld_trajectory`); with
             it, motion blur follows the real path, without it the path between frames is taken as
@@ -166,10 +171,13 @@ class SimulatedCamera(FrameSource):
         exposure_s: float = EXPOSURE_S,
         supersample: int = 2,
         trajectory: Trajectory | None = None,
+        smear_step_px: float = 2.0,
     ) -> None:
         super().__init__()
         if not poses:
             raise ValueError("SimulatedCamera needs at least one pose; make them with handheld_path(...)")
+        if smear_step_px <= 0:
+            raise ValueError(f"smear_step_px must be > 0, got {smear_step_px}")
         if noise_sigma < 0 or blur_sigma < 0 or exposure_s < 0:
             raise ValueError(f"noise_sigma, blur_sigma and exposure_s must be >= 0, got {noise_sigma}, {blur_sigma}, {exposure_s}")
         self.camera = camera
@@ -185,6 +193,7 @@ class SimulatedCamera(FrameSource):
         self.vignetting = float(vignetting)
         self.exposure_s = effective_exposure_s(exposure_s, low_light=low_light, fps=self.fps if len(self.poses) >= 2 else None)
         self.supersample = int(supersample)
+        self.smear_step_px = float(smear_step_px)
         self.trajectory = trajectory
         self._renderer: BoardRenderer | None = None  # built on first use: ~0.5-2 s and ~60 MB at 720p
         self._controls = MappingProxyType({"focus_absolute": 0.0})  # fixed-focus lens, nothing to adjust
@@ -230,8 +239,8 @@ class SimulatedCamera(FrameSource):
         The exposure is centred on the frame's timestamp, so the truth pose (at the timestamp) is
         the centre of any blur and a blurred frame that is still detected is not biased. Its two
         halves follow the path to the previous and the next pose; sub-frames sit at the midpoints
-        of equal time slices (one sub-frame = the truth pose itself), one per 2 px of image motion,
-        at most 8.
+        of equal time slices (one sub-frame = the truth pose itself), one per `smear_step_px` of
+        image motion, at most 8.
         """
         pose = self.poses[i]
         here = (pose.rvec, pose.tvec)
@@ -254,8 +263,9 @@ class SimulatedCamera(FrameSource):
             return here
 
         corners = self._get_renderer().paper_corners_m()
-        n = min(8, motion_subframes(self.camera, corners, at(-half_s), here)
-                + motion_subframes(self.camera, corners, here, at(half_s)) - 1)
+        step = self.smear_step_px
+        n = min(8, motion_subframes(self.camera, corners, at(-half_s), here, px_per_subframe=step)
+                + motion_subframes(self.camera, corners, here, at(half_s), px_per_subframe=step) - 1)
         if n <= 1:
             return [here]
         return [at(-half_s + (j + 0.5) * self.exposure_s / n) for j in range(n)]

@@ -102,6 +102,8 @@ def write_session_outputs(
         payload["uncertainty"]["target_px"] = result.target_px
         payload["uncertainty"]["noise_px"] = result.noise_px
         payload["uncertainty"]["reachable_error_px"] = result.reachable_error_px  # E over the whole image a board can reach
+        # frames the final solve left out as smeared in the exposure read off the capture (coverage/exposure.py)
+        payload["smear"] = {"frames_left_out": result.smeared_left_out, "exposure": result.exposure}
         if result.residual_structure is not None:
             payload["residual_structure"] = result.residual_structure.summary()
         written.append(write_calibration_json(out_dir / "calibration.json", payload))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -102,6 +103,10 @@ def test_inverted_webcam_capture_is_refused_for_poor_coverage(shared_data: Path,
     assert data["board"]["inverted"] is True
     # E over the whole image a board can reach is recorded beside E over the covered region (23% covered: far above it)
     assert data["uncertainty"]["reachable_error_px"] > 2 * data["uncertainty"]["expected_error_px"] > 0
+    # the webcam's exposure, read off its moving frames' edges (12 ms at 6 fps; an indoor webcam's auto
+    # exposure runs 8-33 ms), and no frame smeared past the final solve's limit in it
+    exposure_ms = float(re.search(r"exposure ~(\d+) ms", data["smear"]["exposure"]).group(1))  # type: ignore[union-attr]
+    assert 5 <= exposure_ms <= 33 and data["smear"]["frames_left_out"] == 0
     assert not (out / "camera_matrix.npy").exists()
     assert "no camera files" in stdout
     code, _, _ = run_cli(capsys, "calibrate", str(root / "video" / "cam_0.mp4"), "--board", str(root / "charuco.toml"),
