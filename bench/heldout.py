@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
 from accuracy import score, select_ros, solve_plain  # noqa: E402  (bench/accuracy.py)
-from renders import CELLS, SEEDS, capture_path, render  # noqa: E402
+from renders import CACHE, CELLS, SEEDS, capture_path, render  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
@@ -78,6 +78,22 @@ def detect_all(path: Path) -> tuple[dict[int, Detection], float]:
     start = time.perf_counter()
     found = {frame.index: detector.detect(frame.grey()) for frame in open_source(path)}
     return found, time.perf_counter() - start
+
+
+def cached_capture(name: str):
+    """(path, truth, yardstick) of the cached render `name` (e.g. "dim720_mjpg_s101"): the capture
+    calibcoach reads, its lens truth, and the corners of every frame with >= 6 (the covered region)."""
+    cell, seed = name.rsplit("_s", 1)
+    path = capture_path(cell, int(seed))
+    found, _seconds = detect_all(path)
+    return path, read_truth(CACHE / name), [d.corners_px for _i, d in sorted(found.items()) if d.corner_count >= 6]
+
+
+def render_exposure_s(name: str) -> float:
+    """The exposure cached render `name` was made with (the simulator doubles the drawn one in low
+    light, up to the frame interval)."""
+    cell = CELLS[name.rsplit("_s", 1)[0]]
+    return effective_exposure_s(float((CACHE / name / "exposure_s.txt").read_text()), low_light=cell.low_light, fps=cell.fps)
 
 
 def exposure_smear_px(truth, exposure_s: float, fps: float, spec: BoardSpec) -> dict[int, float]:

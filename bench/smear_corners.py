@@ -26,12 +26,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from heldout import detect_all, exposure_smear_px  # noqa: E402  (bench/heldout.py)
+from heldout import detect_all, exposure_smear_px, render_exposure_s  # noqa: E402  (bench/heldout.py)
 from renders import CACHE, CELLS, cached_renders, capture_path  # noqa: E402
 
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
-from calibcoach.drivers.sim import effective_exposure_s  # noqa: E402
 
 BINS_PX = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, np.inf)
 MIN_CORNERS = 12  # enough for the pose fit to leave the corners' own error
@@ -41,9 +40,8 @@ def residuals_by_smear(name: str) -> dict:
     cell, seed = name.rsplit("_s", 1)
     truth = read_truth(CACHE / name)
     camera = truth.camera
-    fps = CELLS[cell].fps
-    exposure_s = effective_exposure_s(float((CACHE / name / "exposure_s.txt").read_text()), low_light=CELLS[cell].low_light, fps=fps)
-    smear = exposure_smear_px(truth, exposure_s, fps, BoardSpec())
+    exposure_s = render_exposure_s(name)
+    smear = exposure_smear_px(truth, exposure_s, CELLS[cell].fps, BoardSpec())
     found, _seconds = detect_all(capture_path(cell, int(seed)))
     K, dist = camera.camera_matrix, camera.opencv_dist()
     smears, rms = [], []

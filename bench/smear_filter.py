@@ -36,17 +36,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from heldout import detect_all, exposure_smear_px, score_on  # noqa: E402  (bench/heldout.py)
-from renders import CACHE, CELLS, cached_renders, capture_path  # noqa: E402
+from heldout import cached_capture, exposure_smear_px, render_exposure_s, score_on  # noqa: E402  (bench/heldout.py)
+from renders import CELLS, cached_renders  # noqa: E402
 from track_rigidity import _geometric_mean_interval  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.app.session_finish import SessionFinish  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.select import SelectorSettings  # noqa: E402
-from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
-from calibcoach.drivers.sim import effective_exposure_s  # noqa: E402
 
 VARIANTS = ("frame by frame", "exposure read off the capture")
 LIMIT_PX = SelectorSettings().max_solve_smear_px  # the final solve's smear limit (`--limit` changes it)
@@ -69,14 +67,9 @@ def variant(name: str) -> Iterator[None]:
 
 
 def replays(name: str) -> dict[str, dict]:
-    cell, seed = name.rsplit("_s", 1)
-    path = capture_path(cell, int(seed))
-    truth = read_truth(CACHE / name)
-    found, _seconds = detect_all(path)
-    yardstick = [d.corners_px for _i, d in sorted(found.items()) if d.corner_count >= 6]
-    fps = CELLS[cell].fps
-    exposure_s = effective_exposure_s(float((CACHE / name / "exposure_s.txt").read_text()), low_light=CELLS[cell].low_light, fps=fps)
-    smear = exposure_smear_px(truth, exposure_s, fps, BoardSpec())
+    path, truth, yardstick = cached_capture(name)
+    exposure_s = render_exposure_s(name)
+    smear = exposure_smear_px(truth, exposure_s, CELLS[name.rsplit("_s", 1)[0]].fps, BoardSpec())
     rows: dict[str, dict] = {"truth": {"exposure_ms": exposure_s * 1e3}}
     for name_of_variant in VARIANTS:
         start = time.perf_counter()

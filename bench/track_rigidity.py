@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from heldout import calibcoach_run, detect_all  # noqa: E402  (bench/heldout.py)
+from heldout import cached_capture, calibcoach_run  # noqa: E402  (bench/heldout.py)
 from renders import CACHE, cached_renders, capture_path  # noqa: E402
 
 import calibcoach.coverage.detector as detector_module  # noqa: E402
@@ -58,11 +58,7 @@ def rule(name: str) -> Iterator[None]:
 
 
 def replays(name: str) -> dict[str, dict]:
-    cell, seed = name.rsplit("_s", 1)
-    path = capture_path(cell, int(seed))
-    truth = read_truth(CACHE / name)
-    found, _seconds = detect_all(path)
-    yardstick = [d.corners_px for _i, d in sorted(found.items()) if d.corner_count >= 6]
+    path, truth, yardstick = cached_capture(name)
     rows = {}
     for name_of_rule in RULES:
         with rule(name_of_rule):
