@@ -157,8 +157,8 @@ class _Feeder:
     def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen) -> None:
         """The corners' velocities across `middle`, from its own neighbours: the session, which judges
         only some frames, takes them for a judged frame; a tracked frame's fastest corner is kept for its hold."""
-        if before is None or middle is None or self.session is None:
-            return
+        if before is None or middle is None or middle.skipped or self.session is None:
+            return  # a frame skipped in transit is never judged, nor held
         sides = (before.detection, before.frame.timestamp_ns), (after.detection, after.frame.timestamp_ns)
         if middle.tracked_from is None:
             self.session.smear.give(middle.frame.index, *sides)

@@ -24,8 +24,8 @@ motion over ~1 px (`smear_step_px` 0.5, the "smooth" cells of bench/renders.py):
 render's exposure on 7 of 8 (11-33 ms), 38% long on one shaky render (bounded at the 33 ms
 interval), with standard errors of 2-5% that understate what the model leaves out. On the older
 renders, which show a smear under ~4 px as a sharp frame, it reads short or not at all, as their
-images show. Least squares beat a Huber fit (on the first dim render 1.23 frame intervals against 1.53, the
-truth 1.0: Huber discounts the fast frames that carry the slope). On a synthetic smear of 0-4 px
+images show. Least squares beat a Huber fit (on the first dim render 1.23 frame intervals
+against 1.53, the truth 1.0: Huber discounts the fast frames that carry the slope). On a synthetic smear of 0-4 px
 (tests/coverage/test_exposure.py) it reads ~17% long: past the lens blur, a smear lowers the
 steepest gradient faster than the variance model says, which errs on the side of leaving frames out.
 """
@@ -147,14 +147,14 @@ class SmearLedger:
         self._intervals_s: list[float] = []  # between consecutive frames seen (the latest few)
         self._last: tuple[int, int] | None = None  # (index, timestamp_ns) of the last frame seen
         # frame index -> its corners' velocities across it, measured by a caller that sees every frame
-        # (a replay, whose session judges only some): taken by `velocities_at`
+        # (a replay, whose session judges only some): taken by `velocities`
         self._given: dict[int, np.ndarray | None] = {}
 
     def give(self, index: int, before: tuple[Detection, int], after: tuple[Detection, int]) -> np.ndarray | None:
         """Note the corners' velocities at frame `index` from its neighbours ((detection, timestamp_ns)
         either side); returns them."""
         velocities = self._given[index] = corner_velocities(before[0], before[1], after[0], after[1])
-        if len(self._given) > 64:  # given for a frame the session never judged (a replay interrupted): the oldest go
+        if len(self._given) > 64:  # given for frames never judged (a replay cut short): the oldest go
             del self._given[next(iter(self._given))]
         return velocities
 
