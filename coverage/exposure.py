@@ -20,10 +20,11 @@ camera
 few frames moved to read it, or the reading is unsure, no frame is judged by it.
 
 Measured (bench/smear_filter.py, bench/results/smear_filter.md) on renders that smear every
-motion over ~1 px (`smear_step_px` 0.5, the "smooth" cells of bench/renders.py): within 15% of the
-render's exposure on 7 of 8 (11-33 ms), 38% long on one shaky render (bounded at the 33 ms
-interval), with standard errors of 2-5% that understate what the model leaves out. On the older
-renders, which show a smear under ~4 px as a sharp frame, it reads short or not at all, as their
+motion over ~1 px (`smear_step_px` 0.5, the "smooth" cells of bench/renders.py): read on 14 of 15
+(one careful render had 19 moving frames), within 15% of the render's exposure (11-33 ms) on 12 of
+them, 27% and 38% long on two shaky renders, never more than 8% short; standard errors of 2-5%
+understate what the model leaves out. On the older renders, which show a smear under ~4 px as a
+sharp frame, it reads short or not at all, as their
 images show. Least squares beat a Huber fit (on the first dim render 1.23 frame intervals
 against 1.53, the truth 1.0: Huber discounts the fast frames that carry the slope). On a synthetic smear of 0-4 px
 (tests/coverage/test_exposure.py) it reads ~17% long: past the lens blur, a smear lowers the
@@ -46,7 +47,7 @@ from calibcoach.coverage.sharpness import EdgeBlur
 _INFORMATIVE_PX2 = 0.02
 # So many of them before the footage's own reading counts, and it must be known this well (its
 # standard error over itself); otherwise no frame is left out as smeared. The smooth renders gave
-# 35-211 such frames and standard errors of 2-5%; the older renders, whose images show only smears
+# 19-211 such frames and standard errors of 2-5%; the older renders, whose images show only smears
 # over ~4 px, 4-25% where read and 29-99% where not (bench/results/smear_filter.md).
 MIN_INFORMATIVE_FRAMES = 20
 MAX_RELATIVE_ERROR = 0.25

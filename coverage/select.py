@@ -45,14 +45,14 @@ class SelectorSettings:
     # width measure scatters by ~5% between frames of one camera (3 sigma), and a smear that widens
     # a soft image's edges by less changes its corners by less than that.
     min_smear_widening: float = 1.15
-    # The smear no frame of the final solve may have, read at its end from each frame's
-    # fastest corner's speed times the exposure read off the whole capture (coverage/exposure.py).
-    # Measured on renders that smear every motion over ~1 px (bench/results/smear_corners.md, 8
-    # renders): a frame's corners after a pose fit under the true lens keep the residuals of still
-    # frames (0.76-1.01 of them) up to 8 px at normal light, where the smear averages noise away;
-    # in low light they lose 5-13% from 1.5 px on, and at 4-6 px 8%, 13% and 27% on the three renders.
-    # Leaving out everything over 1.5 px cost accuracy (bench/results/smear_filter_1.5px.md: the
-    # frames carry poses the solve needs); at 4 px, 0-4 frames a render, 1.00x over 29 renders.
+    # The smear no frame of the final solve may have, read at its end from each frame's fastest
+    # corner's speed times the exposure read off the whole capture (coverage/exposure.py). Measured
+    # on renders that smear every motion over ~1 px (bench/results/smear_corners.md, 15 renders): a
+    # frame's corners after a pose fit under the true lens keep the residuals of still frames up to
+    # 4 px of smear (0.67-1.16x; the smear averages noise away at normal light); past 4 px low light
+    # loses 6-27% and one shaky render 18-51%. Leaving out everything over 1.5 px cost accuracy on
+    # long-exposure shaky renders (bench/results/smear_filter_1.5px.md: the frames carry poses the
+    # solve needs); at 4 px, 0-7 frames a render, 0.99x the error over 36 renders.
     max_solve_smear_px: float = 4.0
     # The speed hint until the camera's own sharpness is known, at 1280 px width (scaled): 0.5 px
     # of smear in a 20 ms exposure. Only for the first three kept frames.
