@@ -55,8 +55,8 @@ def residuals_by_smear(name: str) -> dict:
             continue
         rvec, tvec = cv2.solvePnPRefineLM(board, image, K, dist, rvec, tvec)
         left = image - camera.project(board, rvec.ravel(), tvec.ravel())
-        smears.append(smear[index])
-        rms.append(float(np.sqrt(np.mean(np.sum(left**2, axis=1)))))
+        smears.append(round(smear[index], 4))
+        rms.append(round(float(np.sqrt(np.mean(np.sum(left**2, axis=1)))), 5))
     return {"exposure_ms": exposure_s * 1e3, "smear_px": smears, "residual_px": rms}
 
 
