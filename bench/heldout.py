@@ -248,6 +248,16 @@ def summary(runs: list[Run]) -> list[str]:
 BOOTSTRAP_DRAWS = 20_000
 
 
+def geometric_mean_interval(ratios: np.ndarray, rng: np.random.Generator | None = None) -> str:
+    """"g [low, high]": the geometric mean of `ratios` and its 95% bootstrap interval, drawn from
+    `rng` (default: a fresh seed-0 generator, so the same ratios always give the same interval)."""
+    logs = np.log(ratios)
+    rng = np.random.default_rng(0) if rng is None else rng
+    means = logs[rng.integers(0, logs.size, (BOOTSTRAP_DRAWS, logs.size))].mean(axis=1)
+    low, high = np.exp(np.percentile(means, [2.5, 97.5]))
+    return f"{np.exp(logs.mean()):.2f} [{low:.2f}, {high:.2f}]"
+
+
 def paired_ratios(runs: list[Run]) -> list[str]:
     """calibcoach's error over each other method's on the same renders: the geometric mean of the
     per-render ratio with a 95% bootstrap interval, per cell and over every render.
@@ -263,11 +273,7 @@ def paired_ratios(runs: list[Run]) -> list[str]:
     error = {(r.cell, r.seed, r.method): r.error_px for r in runs}
 
     def interval(logs: np.ndarray) -> str:
-        if logs.size == 0:
-            return "-"
-        means = logs[rng.integers(0, logs.size, (BOOTSTRAP_DRAWS, logs.size))].mean(axis=1)
-        low, high = np.exp(np.percentile(means, [2.5, 97.5]))
-        return f"{np.exp(logs.mean()):.2f} [{low:.2f}, {high:.2f}] (n {logs.size})"
+        return "-" if logs.size == 0 else f"{geometric_mean_interval(np.exp(logs), rng)} (n {logs.size})"
 
     lines = ["", "calibcoach's error / the other method's on the same renders: geometric mean [95% bootstrap interval] "
              "(renders where both gave a finite error)", "",

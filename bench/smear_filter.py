@@ -36,9 +36,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from heldout import cached_capture, exposure_smear_px, render_exposure_s, score_on  # noqa: E402  (bench/heldout.py)
+from heldout import cached_capture, exposure_smear_px, geometric_mean_interval, render_exposure_s, score_on  # noqa: E402  (bench/heldout.py)
 from renders import CELLS, cached_renders  # noqa: E402
-from track_rigidity import _geometric_mean_interval  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.app.session_finish import SessionFinish  # noqa: E402
@@ -124,7 +123,7 @@ def main() -> int:
     for label, chosen in groups:
         ratios = np.array([r[b]["error_px"] / r[a]["error_px"] for n, r in results.items() if n.rsplit("_s", 1)[0] in chosen])
         if ratios.size:
-            lines.append(f"| {label} | {ratios.size} | {_geometric_mean_interval(ratios)} | {int((ratios < 0.999).sum())} / "
+            lines.append(f"| {label} | {ratios.size} | {geometric_mean_interval(ratios)} | {int((ratios < 0.999).sum())} / "
                          f"{int((np.abs(ratios - 1) <= 0.001).sum())} / {int((ratios > 1.001).sum())} |")
     (ROOT / "results" / f"{args.out}.md").write_text("\n".join(lines) + "\n")
     (ROOT / "results" / f"{args.out}.json").write_text(json.dumps(results, indent=1))

@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from heldout import cached_capture, calibcoach_run  # noqa: E402  (bench/heldout.py)
+from heldout import cached_capture, calibcoach_run, geometric_mean_interval  # noqa: E402  (bench/heldout.py)
 from renders import CACHE, cached_renders, capture_path  # noqa: E402
 
 import calibcoach.coverage.detector as detector_module  # noqa: E402
@@ -130,7 +130,7 @@ def main() -> int:
         ratios = np.array([r["noise allowed for"]["error_px"] / r["fixed 0.5 px"]["error_px"]
                            for n, r in results.items() if n.rsplit("_s", 1)[0] in chosen])
         if ratios.size:
-            lines.append(f"| {label} | {ratios.size} | {_geometric_mean_interval(ratios)} | {int((ratios < 0.999).sum())} / "
+            lines.append(f"| {label} | {ratios.size} | {geometric_mean_interval(ratios)} | {int((ratios < 0.999).sum())} / "
                          f"{int((np.abs(ratios - 1) <= 0.001).sum())} / {int((ratios > 1.001).sum())} |")
     with_corners = {name: rows["corners"] for name, rows in results.items() if "corners" in rows}
     if with_corners:
@@ -141,14 +141,6 @@ def main() -> int:
     (ROOT / "results" / f"{args.out}.json").write_text(json.dumps(results, indent=1))
     print("\n".join(lines[len(results) + 6:]))
     return 0
-
-
-def _geometric_mean_interval(ratios: np.ndarray, draws: int = 20_000) -> str:
-    """The geometric mean of `ratios` with a 95% bootstrap interval (the same draws every time)."""
-    logs = np.log(ratios)
-    means = logs[np.random.default_rng(0).integers(0, logs.size, (draws, logs.size))].mean(axis=1)
-    low, high = np.exp(np.percentile(means, [2.5, 97.5]))
-    return f"{np.exp(logs.mean()):.2f} [{low:.2f}, {high:.2f}]"
 
 
 def _row(name: str, rows: dict) -> str:
