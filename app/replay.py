@@ -162,7 +162,7 @@ class _Feeder:
         sides = (before.detection, before.frame.timestamp_ns), (after.detection, after.frame.timestamp_ns)
         if middle.tracked_from is None:
             self.session.smear.give(middle.frame.index, *sides)
-        else:
+        elif not middle.in_transit:  # a tracked frame in transit is judged, not held: no hold ever takes its speed
             self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(corner_velocities(*sides[0], *sides[1]))
 
     def _track(self, seen: Seen, before: Seen | None) -> None:

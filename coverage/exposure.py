@@ -61,8 +61,8 @@ def corner_velocities(before: Detection, before_ns: int, after: Detection, after
     """(N, 2) px/s of the corners both detections found, from `before` to `after` (None: fewer than 4
     shared, no time between them, or a corner moved more than `MAX_NEIGHBOUR_MOVE_PX`)."""
     dt_s = (after_ns - before_ns) / 1e9
-    if dt_s <= 0:
-        return None
+    if dt_s <= 0 or min(before.corner_count, after.corner_count) < MIN_SHARED_CORNERS:
+        return None  # asked of every frame a replay reads, most of them without a board: no set intersection
     _shared, ia, ib = np.intersect1d(before.ids, after.ids, assume_unique=True, return_indices=True)
     if ia.size < MIN_SHARED_CORNERS:
         return None
@@ -82,7 +82,6 @@ class ExposureReading:
     """The exposure as the footage shows it."""
 
     exposure_s: float | None  # the least-squares reading (None: too few moving frames, or too unsure, to read it)
-    frame_interval_s: float
     informative_frames: int
     relative_error: float  # the reading's standard error over itself (inf where there is none)
 
@@ -118,7 +117,7 @@ class ExposureReader:
         a = np.asarray(self._motion_gap) * interval * interval
         y = np.asarray(self._width_gap)
         informative = int(np.count_nonzero(np.abs(a) >= _INFORMATIVE_PX2))
-        unknown = ExposureReading(None, interval, informative, float("inf"))
+        unknown = ExposureReading(None, informative, float("inf"))
         if informative < MIN_INFORMATIVE_FRAMES or a.size < MIN_INFORMATIVE_FRAMES + 2:
             return unknown
         X = np.stack([np.ones_like(a), a], axis=1)
@@ -135,7 +134,7 @@ class ExposureReader:
         relative = 0.5 * float(np.sqrt(max(slope_variance, 0.0))) / slope
         if relative > MAX_RELATIVE_ERROR:
             return replace(unknown, relative_error=relative)
-        return ExposureReading(interval * float(np.sqrt(min(slope, 1.0))), interval, informative, relative)
+        return ExposureReading(interval * float(np.sqrt(min(slope, 1.0))), informative, relative)
 
 
 class SmearLedger:
@@ -151,13 +150,11 @@ class SmearLedger:
         # (a replay, whose session judges only some): taken by `velocities`
         self._given: dict[int, np.ndarray | None] = {}
 
-    def give(self, index: int, before: tuple[Detection, int], after: tuple[Detection, int]) -> np.ndarray | None:
-        """Note the corners' velocities at frame `index` from its neighbours ((detection, timestamp_ns)
-        either side); returns them."""
-        velocities = self._given[index] = corner_velocities(before[0], before[1], after[0], after[1])
+    def give(self, index: int, before: tuple[Detection, int], after: tuple[Detection, int]) -> None:
+        """Note the corners' velocities at frame `index` from its neighbours ((detection, timestamp_ns) either side)."""
+        self._given[index] = corner_velocities(before[0], before[1], after[0], after[1])
         if len(self._given) > 64:  # given for frames never judged (a replay cut short): the oldest go
             del self._given[next(iter(self._given))]
-        return velocities
 
     def velocities(self, index: int, here: tuple[Detection, int], before: tuple[Detection | None, int | None],
                    after: tuple[Detection, int] | None) -> np.ndarray | None:
