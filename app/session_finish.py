@@ -19,13 +19,14 @@ import numpy as np
 
 from calibcoach.app.session_types import SessionResult
 from calibcoach.app.solve.calibrate import solve
+from calibcoach.app.solve.hold_jackknife import hold_jackknife_covariance
 from calibcoach.app.solve.information import marginal_information
 from calibcoach.app.solve.model_choice import choose_model, likely_model
 from calibcoach.app.solve.next_view import fill_from_reserve
 from calibcoach.app.solve.residual_structure import residual_structure
-from calibcoach.app.solve.result import Calibration, ModelChoice, View
+from calibcoach.app.solve.result import Calibration, ExpectedErrors, ModelChoice, View
 from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
-from calibcoach.app.solve.uncertainty import covered_region_mask, projection_uncertainty
+from calibcoach.app.solve.uncertainty import covered_region_mask, expected_error_px, projection_uncertainty
 from calibcoach.app.solve.verdict import error_target_px, judge
 from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
 from calibcoach.coverage.candidates import ranges_for
@@ -246,6 +247,18 @@ class SessionFinish:
             calibration.camera, calibration.intrinsic_covariance,
             covered_mask_fn=lambda gx, gy: covered_region_mask(self.image_size, corner_sets, (gx.size, gy.size)),
         )
+        # E is the larger of the model's and the one the scatter between holds measures (app/solve/hold_jackknife.py):
+        # the model cannot see error a hold's frames share, and the jackknife of a dozen holds is noisy either way
+        between_holds = hold_jackknife_covariance(solved.camera, solved.views, solved.rvecs, solved.tvecs,
+                                                  solved.residuals_px, groups)
+        expected = ExpectedErrors(uncertainty.expected_error_px)
+        if between_holds is not None:
+            expected = ExpectedErrors(uncertainty.expected_error_px, expected_error_px(between_holds, uncertainty.error_weight),
+                                      len(set(groups)))
+            if expected.between_holds_wins:
+                calibration = replace(calibration, intrinsic_covariance=between_holds)
+                covered = uncertainty.covered  # the same region: only the covariance changed
+                uncertainty = projection_uncertainty(calibration.camera, between_holds, covered_mask_fn=lambda gx, gy: covered)
         stage("verdict")
         coverage = self._final_coverage(calibration)
         reachable_error = uncertainty.expected_error_where(coverage.reachable_at(uncertainty.grid_x_px, uncertainty.grid_y_px))
@@ -265,6 +278,10 @@ class SessionFinish:
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
                               f"{offered} usable frames; solved on {len(self.views)} of them instead."))
+        if expected.between_holds_wins:
+            verdict = replace(verdict, reasons=(*verdict.reasons, f"E is read from the scatter between the capture's {expected.holds} "
+                              f"holds ({expected.between_holds_px:.3f} px); the corner noise alone predicts {expected.from_model_px:.3f} px: "
+                              "the frames of a hold share part of their corners' error, which more frames of the same holds do not average out."))
         if self.focus_drift is not None:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"Focus drifted ({self.focus_drift}): frames taken after "
                               "it were left out; lock focus at the recorded value and continue with --resume to add more."))
@@ -285,6 +302,7 @@ class SessionFinish:
             reachable_error_px=reachable_error,
             smeared_left_out=self.smeared_left_out,
             exposure="" if self.exposure is None else self.exposure.describe(),
+            expected_errors=expected,
         )
 
     def _leave_out_smeared(self) -> None:

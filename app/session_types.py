@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibcoach.app.solve.residual_structure import ResidualStructure
-from calibcoach.app.solve.result import Calibration, ModelChoice, UncertaintyMap, Verdict
+from calibcoach.app.solve.result import Calibration, ExpectedErrors, ModelChoice, UncertaintyMap, Verdict
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap, CoverageRequirements
@@ -121,3 +121,5 @@ class SessionResult:
     # usable frames the final solve left out as smeared, and the exposure they were judged by (coverage/exposure.py)
     smeared_left_out: int = 0
     exposure: str = ""
+    # E from the model covariance and from the scatter between holds; the uncertainty above has the larger
+    expected_errors: ExpectedErrors | None = None

@@ -80,6 +80,10 @@ CELLS: dict[str, Cell] = {
     "smooth_dim720_mjpg": Cell("webcam720", "careful", 2.0, "mjpg", True, 30.0, 784 / 30, smear_step_px=0.5),
     "smooth_careful720_png": Cell("webcam720", "careful", 1.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
     "smooth_shaky720_png": Cell("webcam720", "careful", 4.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
+    # the other hands and lenses with the smear shown (2026-12-05, second session)
+    "smooth_messy720_mjpg": Cell("webcam720", "sloppy", 1.0, "mjpg", False, 30.0, 784 / 30, smear_step_px=0.5),
+    "smooth_wide1080_mjpg": Cell("wide1080", "careful", 2.0, "mjpg", False, 20.0, 26.0, smear_step_px=0.5),
+    "smooth_fisheye150_png": Cell("fisheye150", "careful", 2.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
 }
 # Seeds no tuning of calibcoach has used (the unit tests, guided bench and recordings use 0-9).
 SEEDS = (101, 102, 103, 104, 105)

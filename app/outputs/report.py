@@ -102,6 +102,8 @@ def write_session_outputs(
         payload["uncertainty"]["target_px"] = result.target_px
         payload["uncertainty"]["noise_px"] = result.noise_px
         payload["uncertainty"]["reachable_error_px"] = result.reachable_error_px  # E over the whole image a board can reach
+        if result.expected_errors is not None:  # E from the model and from the scatter between holds; the larger is reported
+            payload["uncertainty"]["expected_error_sources"] = result.expected_errors.summary()
         # frames the final solve left out as smeared in the exposure read off the capture (coverage/exposure.py)
         payload["smear"] = {"frames_left_out": result.smeared_left_out, "exposure": result.exposure}
         if result.residual_structure is not None:

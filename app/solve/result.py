@@ -107,6 +107,25 @@ class UncertaintyMap:
 
 
 @dataclass(frozen=True, slots=True)
+class ExpectedErrors:
+    """E two ways, the larger of which the final solve reports: from the model covariance (corners
+    independent but for the look-alike discount) and from the scatter between the capture's holds
+    (app/solve/hold_jackknife.py), which sees what a hold's frames share."""
+
+    from_model_px: float
+    between_holds_px: float = float("nan")  # nan: too few holds to read the scatter from
+    holds: int = 0
+
+    @property
+    def between_holds_wins(self) -> bool:
+        return bool(self.between_holds_px > self.from_model_px)
+
+    def summary(self) -> dict[str, object]:
+        return {"from_model_px": self.from_model_px, "between_holds_px": self.between_holds_px, "holds": self.holds,
+                "reported": "between holds" if self.between_holds_wins else "model"}
+
+
+@dataclass(frozen=True, slots=True)
 class Verdict:
     """The judgement a user reads first."""
 
