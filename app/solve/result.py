@@ -113,7 +113,7 @@ class ExpectedErrors:
     (app/solve/hold_jackknife.py), which sees what a hold's frames share."""
 
     from_model_px: float
-    between_holds_px: float = float("nan")  # nan: too few holds to read the scatter from
+    between_holds_px: float = float("nan")  # nan: too few holds, or single-frame ones, to read the scatter from
     holds: int = 0
 
     @property

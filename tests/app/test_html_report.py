@@ -79,6 +79,10 @@ def test_the_demo_report_in_a_real_browser(recordings_dir: Path, tmp_path: Path)
     text = report.read_text(encoding="utf-8")
     payload = json.loads((out / "calibration.json").read_text(encoding="utf-8"))
     assert external_references(text) == []
+    # E two ways (the model's, the holds' scatter: 44 frames in ~17 holds), the larger reported and said so
+    sources, E = payload["uncertainty"]["expected_error_sources"], payload["uncertainty"]["expected_error_px"]
+    assert sources["holds"] >= 10 and E == pytest.approx(max(sources["from_model_px"], sources["between_holds_px"]), rel=1e-5)
+    assert (sources["reported"] == "between holds") == any("scatter between" in r for r in payload["verdict"]["reasons"])
     with devtools_page(tmp_path / "chromium-profile", window=(1300, 1000)) as call:
         call("Page.enable")
         call("Page.navigate", url=report.resolve().as_uri())
