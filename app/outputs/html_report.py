@@ -122,6 +122,15 @@ def _verdict_section(verdict: Mapping[str, Any], *, accept_partial: bool) -> str
             f'<p class="small">RMS alone would grade it {_e(verdict.get("rms_grade", ""))}.</p></section>')
 
 
+def _e_sources_row(sources: Mapping[str, Any] | None) -> list[list[str]]:
+    """E from the model and from the scatter between holds (the larger is E above), when both were read."""
+    if not sources or sources.get("between_holds_px") is None:
+        return []
+    return [["E from the corner noise / from the scatter between holds",
+             f"{_f(sources.get('from_model_px'))} / {_f(sources.get('between_holds_px'))} px "
+             f"<span class='small'>({int(sources.get('holds', 0))} holds; the larger is reported)</span>"]]
+
+
 def _numbers_section(payload: Mapping[str, Any]) -> str:
     K = np.asarray(payload["camera_matrix"], float).reshape(3, 3)
     names = list(payload["dist_coeff_names"])
@@ -141,6 +150,7 @@ def _numbers_section(payload: Mapping[str, Any]) -> str:
         ["RMS reprojection error", f"{_f(payload['rms_px'])} px"],
         ["expected projection error E (where the board was seen)", e_cell],
         ["E target", f"{_f(target)} px"],
+        *_e_sources_row(unc.get("expected_error_sources")),
         ["corner noise (per coordinate)", f"{_f(unc.get('noise_px'))} px"],
         ["uncertainty p95 covered / whole image", f"{_f(unc.get('p95_covered_px'))} / {_f(unc.get('p95_px'))} px"],
         ["coverage", f"{_f(100 * float(cov.get('completeness', 0.0)), 0)} %"],

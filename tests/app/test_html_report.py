@@ -108,6 +108,7 @@ def test_the_demo_report_in_a_real_browser(recordings_dir: Path, tmp_path: Path)
     for number in (f"{K[0][0]:.4f}", f"{K[1][1]:.4f}", f"{payload['rms_px']:.3f} px", "k1", "k3",
                    f"{payload['frames_used']} / 120"):
         assert number in page["numbers"], number
+    assert f"{sources['from_model_px']:.3f} / {sources['between_holds_px']:.3f} px" in page["numbers"]  # E both ways
     worst = max(payload["frames"], key=lambda f: f["rms_px"])
     assert worst["name"] in page["frames"]  # the worst frame named
     assert page["command"].startswith("calibcoach calibrate ") and "demo_webcam720_careful" in page["command"]
