@@ -7,7 +7,7 @@ import pytest
 
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector
-from calibcoach.coverage.sharpness import edge_blur, upper_percentile
+from calibcoach.coverage.sharpness import edge_blur, steepest_gradient_sigma, upper_percentile
 from calibcoach.drivers.sim import LENSES
 from calibcoach.drivers.sim_paths import place_board
 from calibcoach.drivers.sim_render import BoardRenderer, expose
@@ -73,3 +73,16 @@ def test_upper_percentile_is_numpys_number_bit_for_bit(pct: float) -> None:
         expected = np.percentile(values, pct)
         got = upper_percentile(values, pct)
         assert got == expected and np.asarray(got).dtype == np.asarray(expected).dtype, (values.size, pct, got, expected)
+
+
+def test_the_steepest_gradient_width_of_a_smeared_edge() -> None:
+    sigma = 0.8
+    small = np.array([0.1, 0.5, 1.0])  # under the blur: the variance model, sigma^2 + L^2 / 12
+    np.testing.assert_allclose(steepest_gradient_sigma(sigma, small), np.sqrt(sigma**2 + small**2 / 12), rtol=3e-3)
+    assert float(steepest_gradient_sigma(sigma, 0.0)) == pytest.approx(sigma)
+    large = np.array([20.0, 40.0])  # far past it: the gradient is the contrast over the smear's length
+    np.testing.assert_allclose(steepest_gradient_sigma(sigma, large), large / np.sqrt(2 * np.pi), rtol=1e-6)
+    # in between the squared width grows faster than the variance model's L^2 / 12, up to 12 / (2 pi) times
+    L = np.linspace(0.5, 30, 60)
+    excess = (steepest_gradient_sigma(sigma, L) ** 2 - sigma**2) / (L**2 / 12)
+    assert np.all(np.diff(excess) > 0) and 1.0 < excess[0] and excess[-1] < 12 / (2 * np.pi)
