@@ -6,9 +6,10 @@ correlate. Yet what the frames of a hold share -- the board's pose, its blur and
 pattern at that spot, the tracking chain that carries a corner's start from frame to frame -- is
 small against each corner's noise (residual correlation 0.00-0.11 on the bench renders) but it
 sits in the smooth patterns over the board that the intrinsics are read from, and it does not
-average out within the hold. On 18 held-out renders with the smear shown the model's E
-understated the true error up to 2.2x (dim renders: E 0.12-0.17 px, error 0.26-0.35 px); the true
-error divided by E had an RMS of 1.27 where an honest E gives 1 (bench/results/expected_error.md).
+average out within the hold. On 21 held-out renders with the smear shown the model's E
+understated the true error up to 2.2x (dim renders: E 0.12-0.17 px, error 0.27-0.35 px); the true
+error divided by E had an RMS of 1.23 where an honest E gives 1
+(bench/results/expected_error_response.md).
 
 So the covariance is also measured from the data's scatter between holds: the solve's score of
 each hold (its residuals times the pose-marginalised Jacobian) is what that hold pulls the
@@ -18,9 +19,9 @@ covariance is (H - 1) / H times the sum of those moves' outer products (the clus
 "CR3" in the econometrics literature). The plain cluster sandwich, S^-1 (sum g_h g_h^T) S^-1,
 reads the same scatter off residuals each hold's own pull has shrunk, and with a dozen holds came
 out below even the model's E on 14 of 15 of these renders. The jackknife needs no noise
-level and no correlation model. On those renders true error / E had an RMS of 0.96 (0.73 on 21
+level and no correlation model. On those renders true error / E had an RMS of 0.94 (0.73 on 21
 older renders, whose smear under ~4 px was drawn sharp), and the larger of the two Es, which the
-final solve reports, 0.90 (worst 1.65x against the model's 2.2x)."""
+final solve reports, 0.88 (worst 1.60x against the model's 2.2x)."""
 
 from __future__ import annotations
 
