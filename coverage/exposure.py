@@ -23,9 +23,10 @@ variance model says (up to 1.9x the widening, `sharpness.steepest_gradient_sigma
 fitted again with each frame's motion weighed by that response at the exposure read so far.
 
 Measured on renders that smear every motion over ~1 px (`smear_step_px` 0.5, the "smooth" cells
-of bench/renders.py; bench/smear_filter.py): read on 20 of 21 (careful, shaky, dim, messy, wide,
-fisheye; one careful render was too unsure), the RMS of the log error 0.138 (0.163 without the
-response's correction), 11% short to 58% long (8% short to 64%), +4% on average (+9%); the worst
+of bench/renders.py; bench/exposure_reading.py, bench/results/exposure_reading.md): read on 20 of
+21 (careful, shaky, dim, messy, wide, fisheye; one careful render was too unsure), the RMS of the
+log error 0.138 (0.163 without the response's correction), 11% short to 58% long (8% short to
+64%), +4.5% on average (+9.7%); the worst
 are the messy render with an 11 ms exposure (18 ms: its frames moving across one edge family widen
 it 3-4x what the smear explains, not understood) and a shaky one (+31%). Standard errors of 2-7%
 understate what the model leaves out. On the older renders, which show a smear under ~4 px as a
