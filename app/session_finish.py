@@ -27,7 +27,7 @@ from calibcoach.app.solve.residual_structure import residual_structure
 from calibcoach.app.solve.result import Calibration, ExpectedErrors, ModelChoice, View
 from calibcoach.app.solve.robust import noise_sigma_px, robust_calibrate, with_look_alikes_weighted
 from calibcoach.app.solve.uncertainty import covered_region_mask, expected_error_px, projection_uncertainty
-from calibcoach.app.solve.verdict import error_target_px, judge
+from calibcoach.app.solve.verdict import error_target_px, judge, smeared_capture_advice
 from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
 from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.corner_refine import refine_on_checker_edges
@@ -278,6 +278,10 @@ class SessionFinish:
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
                               f"{offered} usable frames; solved on {len(self.views)} of them instead."))
+        advice = None if verdict.trusted else smeared_capture_advice(
+            dict(self.selector.counts), "" if self.exposure is None else self.exposure.describe())
+        if advice is not None:
+            verdict = replace(verdict, reasons=(*verdict.reasons, advice))
         if expected.between_holds_wins:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"E is read from the scatter between the capture's {expected.holds} "
                               f"holds ({expected.between_holds_px:.3f} px); the corner noise alone predicts {expected.from_model_px:.3f} px: "

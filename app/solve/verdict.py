@@ -180,6 +180,29 @@ def judge(
     return Verdict(grade, True, grade_rms, tuple(reasons), thresholds)
 
 
+# A refused capture in which more than this share of the frames that showed the board were
+# rejected as moving (smeared within the exposure, or in transit) is told how to hold the board:
+# the live hint's share (app/session.py, 60% of the last 30 such frames), over the whole capture.
+SMEARED_CAPTURE_SHARE = 0.6
+_MIN_BOARD_FRAMES_FOR_ADVICE = 15
+_NOT_SHOWING_THE_BOARD = ("no board", "too few corners", "collinear")
+
+
+def smeared_capture_advice(rejections: dict[str, int], exposure: str = "") -> str | None:
+    """What to change when most frames that showed the board were smeared, else None.
+
+    `rejections`: the selector's count per decision ("accepted", "moving", ...); `exposure`: the
+    reading's words (coverage/exposure.py), named when known.
+    """
+    shown = sum(n for reason, n in rejections.items() if reason not in _NOT_SHOWING_THE_BOARD)
+    moving = rejections.get("moving", 0)
+    if shown < _MIN_BOARD_FRAMES_FOR_ADVICE or moving <= SMEARED_CAPTURE_SHARE * shown:
+        return None
+    said = f" ({exposure} in this footage)" if exposure.startswith("exposure ~") else ""
+    return (f"{moving} of the {shown} frames that showed the board were smeared by its motion: hold it still for a "
+            f"second at each pose (rest your elbows); more light lets the camera use a shorter exposure{said}.")
+
+
 def _what_to_do(*, coverage_short: bool, excess: float, noise_px: float, board_limits: bool = False) -> str:
     """The refusal's last sentence: what would make the next capture trusted.
 

@@ -20,6 +20,7 @@ from calibcoach.app.solve.verdict import (
     resolution_scale,
     rms_grade,
     rms_thresholds_px,
+    smeared_capture_advice,
 )
 from calibcoach.drivers.lens import CameraModel
 
@@ -259,3 +260,15 @@ def test_a_good_calibration_says_only_what_holds() -> None:
     assert len(v.reasons) == 3  # the table, the coverage, E: nothing missing, nothing to do
     for absent in ("Coverage is only", "does not pin", "above its", "What limits it", "outlier frames", "Graded", "Do not use"):
         assert not has(v, absent), absent
+
+
+def test_a_mostly_smeared_capture_is_told_how_to_hold_the_board() -> None:
+    # a fast 31 ms messy render: 38 of the 54 frames that showed the board were moving
+    counts = {"accepted": 11, "no board": 373, "too few corners": 40, "collinear": 4, "moving": 38, "duplicate": 5}
+    advice = smeared_capture_advice(counts, "exposure ~31 ms (+-4%) read off 50 moving frames' edges")
+    assert advice is not None and advice.startswith("38 of the 54 frames") and "rest your elbows" in advice
+    assert "exposure ~31 ms" in advice and "shorter exposure" in advice
+    assert "exposure" not in smeared_capture_advice(counts, "exposure unknown (16 frames ...)").split("shorter exposure")[1]
+    # held well: most frames that showed the board were taken or look-alikes; and too few to say
+    assert smeared_capture_advice({**counts, "moving": 20}) is None
+    assert smeared_capture_advice({"accepted": 3, "moving": 9}) is None
