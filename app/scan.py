@@ -47,6 +47,7 @@ from calibcoach.coverage.detector import (
     TRACK_MAX_SHIFT_PX,
     CharucoBoardDetector,
     Detection,
+    shared_corners,
 )
 from calibcoach.coverage.sharpness import percentile_spread
 from calibcoach.drivers.base import Frame, frames_ahead
@@ -256,7 +257,8 @@ class _Plan:
 
 def board_shift_px(before: Detection, after: Detection) -> float:
     """Largest move of a corner both detections found, px (inf when they share fewer than 4)."""
-    _shared, ia, ib = np.intersect1d(before.ids, after.ids, assume_unique=True, return_indices=True)
-    if ia.size < 4:
+    shared = shared_corners(before, after)
+    if shared is None:
         return float("inf")
+    ia, ib = shared
     return float(np.linalg.norm(after.corners_px[ib] - before.corners_px[ia], axis=1).max())

@@ -72,6 +72,20 @@ CORNER_ACCURACY_PX = 0.1
 VALID_BIT_THRESHOLD = 0.49
 
 
+# Fewer corners than this in common and no move is read between two detections: three are too few
+# to tell a move from a misread corner (an affine map of the board fits any three).
+MIN_SHARED_CORNERS = 4
+
+
+def shared_corners(before: Detection, after: Detection) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the corners both detections found sit in each: (indices into `before`, into `after`),
+    in id order; None when they share fewer than `MIN_SHARED_CORNERS`."""
+    if min(before.corner_count, after.corner_count) < MIN_SHARED_CORNERS:
+        return None  # asked of every frame a replay reads, most of them without a board: no set intersection
+    _shared, ia, ib = np.intersect1d(before.ids, after.ids, assume_unique=True, return_indices=True)
+    return None if ia.size < MIN_SHARED_CORNERS else (ia, ib)
+
+
 def _aruco_parameters(*, inverted: bool, accuracy_px: float = CORNER_ACCURACY_PX) -> cv2.aruco.DetectorParameters:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -236,9 +250,10 @@ TRACK_NOISE_MIN_CORNERS = 12
 def _shift_from(previous: Detection, current: Detection) -> np.ndarray | None:
     """The median shift (2,) of the corners both found, None when it is not one small rigid move
     (a corner off the others' affine map by more than `TRACK_MAX_SPREAD_PX` and their noise allows)."""
-    _shared, ia, ib = np.intersect1d(previous.ids, current.ids, assume_unique=True, return_indices=True)
-    if ia.size < 4:
+    shared = shared_corners(previous, current)
+    if shared is None:
         return None
+    ia, ib = shared
     before = previous.corners_px[ia].astype(np.float64)
     after = current.corners_px[ib].astype(np.float64)
     moves = after - before

@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.detector import Detection, shared_corners
 from calibcoach.coverage.sharpness import SAMPLING_FLOOR_PX, EdgeBlur, steepest_gradient_sigma
 
 # Frames whose motion would widen one edge family over the other by at least this much (squared
@@ -59,18 +59,16 @@ MAX_RELATIVE_ERROR = 0.25
 # A corner moving more than this between neighbouring frames is in transit (the scan marks such
 # frames by their thumbnails), or the neighbours are independent photos: no speed is read.
 MAX_NEIGHBOUR_MOVE_PX = 25.0
-MIN_SHARED_CORNERS = 4
 
 
 def corner_velocities(before: Detection, before_ns: int, after: Detection, after_ns: int) -> np.ndarray | None:
     """(N, 2) px/s of the corners both detections found, from `before` to `after` (None: fewer than 4
     shared, no time between them, or a corner moved more than `MAX_NEIGHBOUR_MOVE_PX`)."""
     dt_s = (after_ns - before_ns) / 1e9
-    if dt_s <= 0 or min(before.corner_count, after.corner_count) < MIN_SHARED_CORNERS:
-        return None  # asked of every frame a replay reads, most of them without a board: no set intersection
-    _shared, ia, ib = np.intersect1d(before.ids, after.ids, assume_unique=True, return_indices=True)
-    if ia.size < MIN_SHARED_CORNERS:
+    shared = None if dt_s <= 0 else shared_corners(before, after)
+    if shared is None:
         return None
+    ia, ib = shared
     moved = after.corners_px[ib].astype(np.float64) - before.corners_px[ia].astype(np.float64)
     if float(np.max(np.abs(moved))) > MAX_NEIGHBOUR_MOVE_PX:
         return None

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibcoach.coverage.detector import MIN_FRAME_CORNERS, Detection
+from calibcoach.coverage.detector import MIN_FRAME_CORNERS, Detection, shared_corners
 from calibcoach.coverage.grid import Contribution, CoverageMap
 from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.sharpness import EdgeBlur
@@ -118,11 +118,10 @@ def spans_rows_and_columns(detection: Detection, squares_x: int) -> bool:
 
 def board_motion_px(previous: Detection | None, current: Detection) -> float | None:
     """Median displacement of the corners both frames share, px; None when they share fewer than 4."""
-    if previous is None or previous.corner_count == 0 or current.corner_count == 0:
+    shared = None if previous is None else shared_corners(previous, current)
+    if shared is None:
         return None
-    common, ia, ib = np.intersect1d(previous.ids, current.ids, return_indices=True)
-    if common.size < 4:
-        return None
+    ia, ib = shared
     return float(np.median(np.linalg.norm(previous.corners_px[ia] - current.corners_px[ib], axis=1)))
 
 
