@@ -278,8 +278,8 @@ class SessionFinish:
         if len(self.views) < offered:
             verdict = replace(verdict, reasons=(*verdict.reasons, f"OpenCV's {choice.chosen} solve could not start with all "
                               f"{offered} usable frames; solved on {len(self.views)} of them instead."))
-        advice = None if verdict.trusted else smeared_capture_advice(
-            dict(self.selector.counts), "" if self.exposure is None else self.exposure.describe())
+        exposure = "" if self.exposure is None else self.exposure.describe()
+        advice = None if verdict.trusted else smeared_capture_advice(self.selector.counts, exposure)
         if advice is not None:
             verdict = replace(verdict, reasons=(*verdict.reasons, advice))
         if expected.between_holds_wins:
@@ -305,7 +305,7 @@ class SessionFinish:
             residual_structure=structure,
             reachable_error_px=reachable_error,
             smeared_left_out=self.smeared_left_out,
-            exposure="" if self.exposure is None else self.exposure.describe(),
+            exposure=exposure,
             expected_errors=expected,
         )
 

@@ -30,7 +30,7 @@ from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 
-def readers_of(name: str) -> exposure.ExposureReader:
+def reader_of(name: str) -> exposure.ExposureReader:
     """The reader the replay of render `name` filled (the session's own, kept when it is made)."""
     made: list[exposure.ExposureReader] = []
     original = exposure.ExposureReader.__init__
@@ -70,7 +70,7 @@ def main() -> int:
     logs: dict[str, list[float]] = {"read": [], "plain": []}
     for name in names:
         interval = 1.0 / CELLS[name.rsplit("_s", 1)[0]].fps
-        reader = readers_of(name)
+        reader = reader_of(name)
         truth = render_exposure_s(name)
         read, plain = reading_s(reader, interval, exposure._RESPONSE_ROUNDS), reading_s(reader, interval, 0)
         for key, value in (("read", read), ("plain", plain)):
