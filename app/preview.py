@@ -71,5 +71,7 @@ def frame_for_log(frame: Frame) -> tuple[Frame, bytes | None]:
 
 def outcome_for_log(outcome: FrameOutcome) -> FrameOutcome:
     """The outcome as a deferred logger holds it: an accepted frame's coverage map is the session's
-    live one, which the next accept changes, so it is copied as it is now."""
-    return replace(outcome, coverage=copy.deepcopy(outcome.coverage)) if outcome.decision.accepted else outcome
+    live one, which the next accept changes, so it is copied as it is now; other frames' is left out
+    (the log shows coverage on a kept frame only, and the live map must not be pickled on another
+    thread while the session changes it: app/viewer_process.py)."""
+    return replace(outcome, coverage=copy.deepcopy(outcome.coverage) if outcome.decision.accepted else None)

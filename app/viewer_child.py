@@ -1,42 +1,52 @@
-"""What the forked child of app/viewer_process.py runs: session.rrd written from the frames it was born with.
+"""What the forked child of app/viewer_process.py runs: session.rrd written from the messages on its pipe.
 
-The child starts once the replay has read its source, as a fork of the replay's process: the
-frames to log (each outcome, its frame without pixels, its preview JPEG) are already in its
-memory, and so are NumPy, OpenCV and calibcoach's modules; only rerun is left to import. What
-comes after the fork (the final result) arrives on a pipe, each message a 4-byte big-endian length
-and a pickled (method, args, kwargs) of `Viewer`; end of input ends the log.
+The child is forked as the replay starts, so NumPy, OpenCV and calibcoach's modules are in its
+memory already; it imports rerun at once (while the replay reads), then waits. Every message is a
+4-byte big-endian length and a pickled (method, args, kwargs): "log_frames" with a batch of the
+frames the replay judged (each outcome, its frame without pixels, its preview JPEG, when it was
+judged), logged as columns, as they come, then calls of `Viewer` (the final result); end of input
+ends the log.
 """
 
 from __future__ import annotations
 
 import pickle
-from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
-
-if TYPE_CHECKING:
-    from calibcoach.app.session import FrameOutcome
-    from calibcoach.drivers.base import Frame
+from typing import BinaryIO
 
 
-def log_session(out_dir: Path, frames: Sequence[tuple[FrameOutcome, Frame, bytes | None, float]], messages: BinaryIO) -> None:
-    """Write out_dir/session.rrd: `frames` first (outcome, frame, preview JPEG, when it was judged;
-    as columns), then each message until the pipe closes."""
-    from calibcoach.app.viewer import Viewer  # rerun: ~0.25 s, beside the replay's final solve
+def log_session(out_dir: Path, messages: BinaryIO) -> None:
+    """Write out_dir/session.rrd from `messages` (see the module docstring); nothing when the pipe
+    closes before the first message (the replay was killed outright)."""
+    from calibcoach.app.viewer import Viewer  # rerun: ~0.45 s of CPU, while the replay reads
     from calibcoach.app.viewer_columns import log_frames
 
+    call = _read_message(messages)
+    if call is None:
+        return
     viewer = Viewer.open("none", out_dir=out_dir)
     try:
-        log_frames(viewer, frames)
-        while len(head := messages.read(4)) == 4:
-            size = int.from_bytes(head, "big")
-            blob = messages.read(size)
-            if len(blob) < size:
-                break  # the replay died mid-message: log what came whole
-            method, args, kwargs = pickle.loads(blob)
-            getattr(viewer, method)(*args, **kwargs)
+        while call is not None:
+            method, args, kwargs = call
+            if method == "log_frames":  # a batch of the frames the replay judged, as columns
+                log_frames(viewer, *args, **kwargs)
+            else:
+                getattr(viewer, method)(*args, **kwargs)
+            call = _read_message(messages)
     finally:
         viewer.close()
+
+
+def _read_message(messages: BinaryIO) -> tuple[str, tuple, dict] | None:
+    """The next (method, args, kwargs), or None at the end of input (or a message cut short: the replay died mid-message)."""
+    head = messages.read(4)
+    if len(head) < 4:
+        return None
+    size = int.from_bytes(head, "big")
+    blob = messages.read(size)
+    if len(blob) < size:
+        return None
+    return pickle.loads(blob)
 
 
 def message(method: str, *args: object, **kwargs: object) -> bytes:

@@ -39,7 +39,10 @@ def held_out_rms(camera: CameraModel, views: Sequence[View]) -> float:
         if pose is None:
             per_view.append(float("inf"))
             continue
-        rvec, tvec = _refine_pose(camera, view, *pose)
+        # poses_for_views refines pinhole and rational poses by OpenCV's LM already (a Gauss-Newton
+        # pass after it moved the held-out RMS by 1e-7 of itself, for a third of the time); a
+        # fisheye pose comes from PnP on undistorted rays and is refined here
+        rvec, tvec = _refine_pose(camera, view, *pose) if camera.model == "fisheye" else pose
         res = view.image_points_px - camera.project(view.object_points_m, rvec, tvec)
         per_view.append(float(np.mean(np.sum(res**2, axis=1))))
     if not per_view:
@@ -181,12 +184,16 @@ def estimate_hfov_deg(views: Sequence[View], image_size: tuple[int, int], *, war
     """Horizontal field of view from quick pinhole and fisheye solves, whichever fits better.
 
     A pinhole solve is reliable for narrow lenses and fails on fisheyes; an equidistant solve
-    follows wide lenses; the lower RMS tells which one saw the lens right. `warm`: see `choose_model`.
+    follows wide lenses; the lower RMS tells which one saw the lens right. `warm`: see `choose_model`;
+    a pinhole `warm` starts the pinhole solve too, since this solve is read for its field of view,
+    not scored against another (`solve` still tries OpenCV's own start where the warm one fits worse
+    than a pixel): 0.15 s instead of 0.23 on a careful 720p replay's 358 views, the same solution.
     """
     best: tuple[float, float] | None = None
     for model in ("pinhole", "fisheye"):
+        start = warm if model == "pinhole" and warm is not None and warm.model == "pinhole" else _warm_for(model, warm)
         try:
-            raw = solve(views, image_size, model, initial=_warm_for(model, warm))
+            raw = solve(views, image_size, model, initial=start)
         except CalibrationError:
             continue
         hfov = raw.camera.field_of_view_deg()[0]

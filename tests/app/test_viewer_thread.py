@@ -86,3 +86,27 @@ def test_the_logging_child_runs_in_a_session_of_its_own_deaf_to_ctrl_c(tmp_path:
     verify = subprocess.run([str(Path(sys.executable).with_name("rerun")), "rrd", "verify", str(tmp_path / "session.rrd")],
                             capture_output=True, text=True)
     assert verify.returncode == 0, verify.stderr
+
+
+def test_the_logging_child_is_forked_with_the_viewer_and_imports_rerun_at_the_lowest_priority(tmp_path: Path) -> None:
+    # It imports rerun while the replay reads, in the CPU the replay leaves idle (nice 19), rather
+    # than beside the final solve; a replay killed before its frames were sent leaves no session.rrd.
+    import os
+
+    from calibcoach.app.viewer_process import ProcessViewer
+
+    viewer = ProcessViewer(tmp_path)
+    child = viewer._child
+    assert child is not None and child > 0  # forked before any frame was logged or start() was called
+    nice = int(Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[16])
+    deadline = time.monotonic() + 10.0  # it lowers its priority right after the fork
+    while nice != 19 and time.monotonic() < deadline:
+        time.sleep(0.01)
+        nice = int(Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[16])
+    assert nice == 19
+    os.close(viewer._to_child)  # the pipe closes before any frames came, as when the replay is killed
+    viewer._to_child = None
+    _pid, status = os.waitpid(child, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert not (tmp_path / "session.rrd").exists()
+    viewer._closed = True
