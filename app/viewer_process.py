@@ -29,7 +29,8 @@ short; its stderr comes back on a pipe, and `close()` waits for it and raises, n
 last words, if it failed. No thread of this module exists at the fork (the encoding thread starts
 after it), and OpenCV's pool is down to one thread since the scan's own fork
 (app/scan_process.py), so the child never waits on a lock or a pool thread it was not born with.
-A replay killed outright before `start()` leaves the child an empty pipe: it exits, writing nothing.
+A replay killed outright closes the pipe: the child logs the frames it had and closes session.rrd
+(writes nothing if none had come).
 Where fork is not available (`fork_available`), `commands.open_replay_viewer` falls back on the
 logging thread (app/viewer_thread.py).
 """
