@@ -19,10 +19,10 @@ before it is *tracked* into it (`CharucoBoardDetector.track`: the previous marke
 A frame of footage into and out of which the scene changed fast (`_TRANSIT_CHANGE`) shows a board
 in transit: it is marked so and the session rejects it as moving whatever its edges say (it
 smears, and on other renderers and real cameras its corners are biased along the motion); only
-every 8th such frame is detected at all. The tracked frames of a hold join the session's reserve
-when a fully detected frame of the same hold was judged usable and either the board moved at most
-the selector's smear limit into and out of them or their own image passes its smear and blur
-tests (app/replay.py).
+every 8th such frame is detected at all, every 32nd once a board has been seen. The tracked
+frames of a hold join the session's reserve when a fully detected frame of the same hold was
+judged usable and either the board moved at most the selector's smear limit into and out of them
+or their own image passes its smear and blur tests (app/replay.py).
 
 Frames without a board whose thumbnail did not change either show no board either: their empty
 detection is repeated. Every decision depends on the images alone, never on timing or threads,
@@ -74,12 +74,18 @@ _THUMB_SIZE = (80, 45)  # (width, height): 16 px cells at 720p
 _TRACKABLE_CHANGE = 0.1
 # A change this large (p5 of 8+ px moves on 720p renders) into and out of a frame of footage is a
 # board in transit: at 30 fps it smears >= 2 px even in an 8 ms exposure, past the selector's
-# 1.5 px limit, so only every 8th such frame is detected (the session still sees the board pass, and
-# counts it moving for its holding hint; a second of transit still gives it 3-4 such frames).
+# 1.5 px limit, so only some such frames are detected: the session still sees the board pass, and
+# counts it moving. Until the scan has seen a board at all, every 8th (`_TRANSIT_SAMPLE`; a second
+# of transit gives 3-4): footage whose board is only ever in motion must not read as footage without
+# a board (the session would look for a wrong board spec instead of saying "hold it still"). Once a
+# board has been seen, every 32nd: a transit's smear hides the board from the detector -- of the 196
+# frames sampled at every 8th on five renders (careful, shaky, dim, two messy), 4 showed one -- and
+# each costs a full detection (~5 ms at 720p; 0.2 s of a careful replay's CPU at every 8th).
 # Independent stills change this much between all neighbours: they are detected until the source
 # has shown itself to be footage (`_FOOTAGE_AFTER` neighbours alike).
 _TRANSIT_CHANGE = 0.4
 _TRANSIT_SAMPLE = 8
+_TRANSIT_SAMPLE_ONCE_SEEN = 32
 _FOOTAGE_AFTER = 5
 _SAME_SCENE_CHANGE = 0.015  # no board and a change this small (~3 of 200 grey levels): the same empty scene
 
@@ -141,6 +147,7 @@ class HeldFrameScan:
         self.detected = 0
         self.skipped = 0
         self._richest: Seen | None = None  # the fully detected frame of the current hold with the most corners
+        self._board_seen = False  # a frame seen so far showed a board (>= MIN_FRAME_CORNERS): transits are sampled sparser
         self._continuity = 0  # neighbouring frames alike so far: evidence of footage rather than independent stills
 
     def _detector(self) -> CharucoBoardDetector:
@@ -184,8 +191,11 @@ class HeldFrameScan:
         if change_in <= _TRACKABLE_CHANGE:
             self._continuity += 1
         transit = self._judge_transit and self._continuity >= _FOOTAGE_AFTER and min(change_in, change_out) > _TRANSIT_CHANGE
-        if transit and self._track and frame.index % _TRANSIT_SAMPLE:
-            return _Plan(frame, change_in, None, transit=True, skip=True)
+        if transit and self._track and frame.index % _TRANSIT_SAMPLE_ONCE_SEEN:
+            # every 8th is detected when it is seen, and only if no board has been seen by then: the
+            # frames before it are seen in order, so the choice is the images', whatever the lookahead
+            return _Plan(frame, change_in, None, transit=True, skip=frame.index % _TRANSIT_SAMPLE != 0,
+                         sample_unless_seen=frame.index % _TRANSIT_SAMPLE == 0)
         if not self._track or frame.index % REDETECT_EVERY == 0 or change_in > _TRACKABLE_CHANGE:
             return _Plan(frame, change_in, pool.submit(self._detect, frame), transit=transit)
         return _Plan(frame, change_in, None, transit=transit)
@@ -194,8 +204,16 @@ class HeldFrameScan:
         return self._detector().detect(frame.grey())
 
     def _see(self, plan: _Plan, previous: Seen | None) -> Seen:
+        seen = self._see_frame(plan, previous)
+        self._board_seen = self._board_seen or seen.detection.corner_count >= MIN_FRAME_CORNERS
+        return seen
+
+    def _see_frame(self, plan: _Plan, previous: Seen | None) -> Seen:
         frame = plan.frame
-        if plan.skip:
+        if plan.sample_unless_seen and not self._board_seen:
+            self.detected += 1
+            return self._fresh(Seen(frame, self._detect(frame), None, None, in_transit=True), previous)
+        if plan.skip or plan.sample_unless_seen:
             self.skipped += 1
             return Seen(frame, Detection.empty(), None, None, in_transit=True, skipped=True)
         if plan.detection is not None:
@@ -253,6 +271,7 @@ class _Plan:
     detection: Future[Detection] | None  # started ahead; None: track the board (or repeat the empty scene)
     transit: bool = False
     skip: bool = False  # in transit and not sampled: not detected at all
+    sample_unless_seen: bool = False  # in transit: detected when seen if no board has been seen yet, else skipped
 
 
 def board_shift_px(before: Detection, after: Detection) -> float:

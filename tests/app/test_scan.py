@@ -12,7 +12,7 @@ import pytest
 
 from calibcoach.app import scan
 from calibcoach.app.replay import run_replay
-from calibcoach.app.scan import _TRANSIT_SAMPLE, REDETECT_EVERY, HeldFrameScan, thumbnail
+from calibcoach.app.scan import _TRANSIT_SAMPLE, _TRANSIT_SAMPLE_ONCE_SEEN, REDETECT_EVERY, HeldFrameScan, thumbnail
 from calibcoach.app.scan_stream import detected_frames
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage import detector as detector_module
@@ -185,12 +185,35 @@ def test_a_fast_transit_of_footage_is_sampled_and_never_used(recordings_dir: Pat
     transit = [s.frame.index for s in seen if s.in_transit]
     assert transit == list(range(10, 22))  # every frame of the sweep, none of the holds
     detected_in_transit = [s.frame.index for s in seen if s.in_transit and not s.skipped]
-    assert detected_in_transit == [i for i in transit if i % _TRANSIT_SAMPLE == 0] == [16]  # every 8th is detected, the rest skipped
+    # a board was seen (the hold): only every 32nd frame of a transit is detected, here none
+    assert detected_in_transit == [i for i in transit if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0] == []
     assert scan.skipped == len(transit) - len(detected_in_transit)
     # the same frames are in transit when every frame is detected (--every-frame), so both reject them alike
     dense = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(spec), track=False))
     assert [s.frame.index for s in dense if s.in_transit] == transit
     assert not any(s.skipped or s.tracked_from is not None for s in dense)
+
+
+def test_a_transit_before_any_board_was_seen_is_sampled_every_8th_frame(recordings_dir: Path, tmp_path: Path) -> None:
+    # Footage whose board only ever moves must still show its board (the session then says "hold it
+    # still" instead of looking for a wrong board spec): until a board has been seen, every 8th frame
+    # of a transit is detected; after, every 32nd. An empty scene (10 frames), then the board sweeping
+    # 40 px a frame out and back for 36 frames.
+    grey = _demo_grey(recordings_dir, 0)
+    rng = np.random.default_rng(8)
+    empty = [np.clip(np.full_like(grey, 120) + rng.normal(0, 1.0, grey.shape), 0, 255).astype(np.uint8) for _ in range(10)]
+    offsets = [40.0 * (k + 1) if k < 12 else 480.0 - 40.0 * (k - 11) for k in range(36)]
+    folder = _write(tmp_path / "sweep", empty + [_shifted(grey, dx, 0.0, rng) for dx in offsets])
+    spec = SETTLED
+    seen = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(spec)))
+    transit = [s.frame.index for s in seen if s.in_transit]
+    assert transit == list(range(10, 46))  # the whole sweep
+    detected = [s for s in seen if s.in_transit and not s.skipped]
+    first_board = next(s.frame.index for s in detected if s.detection.corner_count >= 6)
+    expected = [i for i in transit if i % _TRANSIT_SAMPLE == 0 and i <= first_board]
+    expected += [i for i in transit if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0 and i > first_board]
+    assert [s.frame.index for s in detected] == expected
+    assert first_board == 16 and expected == [16, 32]  # 24 and 40 skipped once the board was seen at 16
 
 
 def test_independent_stills_are_all_detected(shared_data: Path) -> None:
