@@ -201,3 +201,37 @@ def test_each_half_is_solved_cold_as_a_pinhole_once(monkeypatch: pytest.MonkeyPa
     assert sorted(cold_pinholes) == [12, 12, 24]  # the field of view's solve on all views, then one per half
     assert again.chosen == before.chosen == "pinhole"
     assert again.candidates == before.candidates
+
+
+def test_a_rational_half_stopped_in_a_wrong_minimum_is_solved_again_from_the_other_half(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The rational model's valley has several minima; on a 104 deg render one half's solve stopped in
+    # one (held out 0.26 px against the other half's 0.056) and a rational lens was given the fisheye
+    # model. Here the first rational solve of a half is sent to such a place: the true lens with its
+    # k3 term off by +0.5, posed as well as it can. The halves then disagree, each is solved again
+    # from the other's solution, and the rational model is chosen as without the wrong start.
+    from calibcoach.app.solve import model_choice
+    from calibcoach.app.solve.calibrate import RawSolution, poses_for_views
+    from calibcoach.drivers.lens import CameraModel
+
+    views = views_of("wide720", 7, n=24)
+    plain = choose_model(views, SIZE)
+    assert plain.chosen == "rational"
+    truth = CASES["wide720"][0]
+    wrong = CameraModel("rational", truth.camera_matrix, truth.dist_coeffs + [0, 0, 0, 0, 0.5, 0, 0, 0], SIZE)
+    real_solve, sent = model_choice.solve, []
+
+    def one_half_in_a_wrong_minimum(views_, size, model, **kwargs):
+        if model == "rational" and not sent and len(views_) < len(views):
+            sent.append(len(views_))
+            poses = poses_for_views(wrong, views_)
+            rv, tv = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
+            return RawSolution(wrong, 1.0, rv, tv)
+        return real_solve(views_, size, model, **kwargs)
+
+    monkeypatch.setattr(model_choice, "solve", one_half_in_a_wrong_minimum)
+    wrong_start = held_out_rms(wrong, views[0::2])
+    assert wrong_start > 2 * plain.candidates["rational"]  # the wrong place scores far worse held out
+    choice = choose_model(views, SIZE)
+    assert sent  # a half did start in the wrong place
+    assert choice.chosen == "rational"
+    assert choice.candidates["rational"] == pytest.approx(plain.candidates["rational"], rel=0.05)
