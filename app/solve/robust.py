@@ -121,9 +121,9 @@ def robust_calibrate(
     Where whole frames were dropped and some of them fit the intrinsics the kept frames gave (each
     posed under them, `_refitting_frames`), the solve is done once more over every frame from those
     intrinsics (`_robust_once` again), and taken when it keeps more frames at an RMS within
-    `_READMIT_RMS_RATIO` of the first. A frame is dropped for misfitting the
-    solve, and a solve in a wrong minimum misfits frames that are not at fault: the 8-term rational
-    model's valley has several, and on a 104 deg 1080p render (smooth wide s104, 211 frames) both
+    `_READMIT_RMS_RATIO` of the first. A frame is dropped for misfitting the solve, and a solve in a
+    wrong minimum misfits frames that are not at fault: the 8-term rational model's valley has
+    several, and on a 104 deg 1080p render (smooth wide s104, 211 frames) both
     OpenCV's start and the capture's own lens led to one at RMS 0.35 px where 4 whole holds (63
     frames, at the image's edges) misfit by 0.65-1.65 px; they were dropped, and the 148 left gave
     0.22 px against the truth, accepted. From the kept frames' solution all 211 fit (RMS 0.060, the

@@ -12,7 +12,13 @@ import pytest
 
 from calibcoach.app import scan
 from calibcoach.app.replay import run_replay
-from calibcoach.app.scan import _TRANSIT_SAMPLE, _TRANSIT_SAMPLE_ONCE_SEEN, REDETECT_EVERY, HeldFrameScan, thumbnail
+from calibcoach.app.scan import (
+    _TRANSIT_SAMPLE,
+    _TRANSIT_SAMPLE_ONCE_SEEN,
+    REDETECT_EVERY,
+    HeldFrameScan,
+    thumbnail,
+)
 from calibcoach.app.scan_stream import detected_frames
 from calibcoach.app.session import SessionSettings
 from calibcoach.coverage import detector as detector_module
