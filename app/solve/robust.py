@@ -153,12 +153,12 @@ def _refitting_frames(calibration: Calibration, views: Sequence[View]) -> int:
     kept = [robust_frame_rms_px(r) for r in calibration.residuals_px]
     limit = max(_FRAME_RATIO * float(np.median(kept)), _FRAME_FLOOR_PX)
     candidates = [v for v in views if v.frame_index in dropped]
-    fitting = 0
-    for view, pose in zip(candidates, poses_for_views(calibration.camera, candidates), strict=True):
-        if pose is not None:
-            residuals = reprojection_residuals(calibration.camera, [view], pose[0].reshape(1, 3), pose[1].reshape(1, 3))[0]
-            fitting += robust_frame_rms_px(residuals) <= limit
-    return fitting
+    posed = [(v, p) for v, p in zip(candidates, poses_for_views(calibration.camera, candidates), strict=True) if p is not None]
+    if not posed:
+        return 0
+    residuals = reprojection_residuals(calibration.camera, [v for v, _p in posed], np.array([p[0] for _v, p in posed]),
+                                       np.array([p[1] for _v, p in posed]))
+    return sum(robust_frame_rms_px(r) <= limit for r in residuals)
 
 
 def _robust_once(
