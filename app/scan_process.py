@@ -106,10 +106,13 @@ class ChildScan:
             kind = message[0]
             if kind == "frame":
                 _kind, slot, shape, has_grey, (index, timestamp_ns, name, controls, encoded), seen, child_state = message
-                size = int(np.prod(shape))
-                image = self._ring[slot, :size].reshape(shape).copy()  # type: ignore[index]
-                grey = self._ring[slot, size:size + size // 3].reshape(shape[:2]).copy() if has_grey else None  # type: ignore[index]
-                self._free.release()
+                if slot is None:  # skipped in transit: no pixels (the replay only counts it)
+                    image, grey = np.zeros(shape, np.uint8), None
+                else:
+                    size = int(np.prod(shape))
+                    image = self._ring[slot, :size].reshape(shape).copy()  # type: ignore[index]
+                    grey = self._ring[slot, size:size + size // 3].reshape(shape[:2]).copy() if has_grey else None  # type: ignore[index]
+                    self._free.release()
                 self._apply_state(child_state)
                 frame = Frame(index, timestamp_ns, image, name, MappingProxyType(controls), encoded=encoded)
                 if grey is not None:
@@ -142,12 +145,12 @@ class ChildScan:
 
 
 def _pixels_for_the_session(seen: Seen) -> np.ndarray:
-    """The pixels the replay needs of a frame: a tracked or skipped frame's in grey only.
+    """The pixels the replay needs of a frame it judges or tracks: a tracked frame's in grey only.
 
-    The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_edges`)
-    and only counts a frame skipped in transit; neither is logged or previewed, so of a colour
-    frame the grey conversion the scan already made crosses (a third of the bytes, and no second
-    conversion in the replay). Frames the session decides keep their colour (previews, the check
+    The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_edges`);
+    it is neither logged nor previewed, so of a colour frame the grey conversion the scan already
+    made crosses (a third of the bytes, and no second conversion in the replay). A frame skipped
+    in transit is only counted: none of its pixels cross (`_produce`). Frames the session decides keep their colour (previews, the check
     image): a BGR frame's pixels, or an MJPG frame's JPEG beside its grey (`Frame.encoded`). The
     decisions are the same: the replay would convert those frames to exactly this grey.
     """
@@ -165,7 +168,13 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle: it ends this process
     slots, frame_bytes = ring.shape
     try:
-        for count, seen in enumerate(make_seen()):
+        slot = -1
+        for seen in make_seen():
+            frame = seen.frame
+            if seen.skipped:  # only counted by the replay: its index and time cross, not its pixels
+                sending.send(("frame", None, (0, 0), False, (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls), None),
+                              replace(seen, frame=None), state()))
+                continue
             image = np.ascontiguousarray(_pixels_for_the_session(seen))
             grey = seen.frame.grey_made if image.ndim == 3 else None  # converted here for detection or tracking
             if image.nbytes + (0 if grey is None else grey.nbytes) > frame_bytes:
@@ -174,11 +183,10 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
             while not free.acquire(timeout=_POLL_S):
                 if os.getppid() != parent_pid:  # the parent died without ending this process
                     return
-            slot = count % slots
+            slot = (slot + 1) % slots  # the slots are freed in the order they are filled
             ring[slot, : image.nbytes] = image.reshape(-1)
             if grey is not None:
                 ring[slot, image.nbytes : image.nbytes + grey.nbytes] = grey.reshape(-1)
-            frame = seen.frame
             # an MJPG frame's JPEG goes along where the session may show the frame in colour (see above)
             encoded = frame.encoded if _judged(seen) else None
             sending.send(("frame", slot, image.shape, grey is not None,

@@ -171,10 +171,11 @@ def test_calibrate_starts_scanning_footage_before_the_session_loads(recordings_d
 
 
 def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: Path, tmp_path: Path) -> None:
-    # Tracked and skipped frames are judged in grey or only counted, so the child sends the grey it
-    # made (a third of the bytes); decided frames keep their colour for previews, and the grey the
-    # child made of them comes along (the session judges in grey). The pixels are the
-    # replay's own grey conversion, so the decisions are those of the scan in process.
+    # Tracked frames are judged in grey, so the child sends the grey it made (a third of the bytes);
+    # decided frames keep their colour for previews, and the grey the child made of them comes
+    # along (the session judges in grey); frames skipped in transit are only counted and cross
+    # without pixels. The pixels are the replay's own grey conversion, so the decisions are those
+    # of the scan in process.
     from calibcoach.app.scan_stream import ScanStream
 
     folder = _folder(recordings_dir, tmp_path / "colour", frames=40, colour=True)
@@ -184,9 +185,12 @@ def test_a_colour_frame_the_session_only_tracks_crosses_in_grey(recordings_dir: 
         local = list(in_process)
     tracked = [s for s in crossed if s.tracked_from is not None]
     assert tracked and len(tracked) < len(crossed)  # both kinds are there
+    assert any(s.skipped for s in crossed)  # ... and frames skipped in transit
     for child, here in zip(crossed, local, strict=True):
         assert child.frame.index == here.frame.index and child.tracked_from == here.tracked_from
-        if child.tracked_from is not None or child.skipped:
+        if child.skipped:
+            assert child.frame.image.size == 0 and child.frame.timestamp_ns == here.frame.timestamp_ns
+        elif child.tracked_from is not None:
             assert child.frame.image.ndim == 2 and np.array_equal(child.frame.image, here.frame.grey())
         else:  # with the grey the child made of it, so the session does not convert it again
             assert child.frame.image.ndim == 3 and np.array_equal(child.frame.image, here.frame.image)
