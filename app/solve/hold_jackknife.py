@@ -29,7 +29,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibcoach.app.solve.information import covariance_from_information, stacked_view_jacobians
+from calibcoach.app.solve.information import (
+    covariance_from_information,
+    rows_weighted,
+    stacked_view_jacobians,
+)
 from calibcoach.app.solve.result import View
 from calibcoach.drivers.lens import CameraModel
 
@@ -53,7 +57,8 @@ def hold_jackknife_covariance(camera: CameraModel, views: Sequence[View], rvecs:
 
     Args:
         camera, views, rvecs, tvecs: the solve; each view's rows count by its `information_weight`
-            as the weighted solve counted them (not yet discounted for look-alikes).
+            and its corners' `corner_weights` as the weighted solve counted them (not yet
+            discounted for look-alikes).
         residuals_px: per view (N_v, 2) observed - projected, at the solution.
         holds: per view the hold (look-alike group) it belongs to.
     """
@@ -64,14 +69,14 @@ def hold_jackknife_covariance(camera: CameraModel, views: Sequence[View], rvecs:
     r = np.zeros(J_intr.shape[:2])
     for k, res in enumerate(residuals_px):
         r[k, : res.size] = np.asarray(res, np.float64).reshape(-1)  # x0, y0, x1, ... as the Jacobian's rows
-    w = np.array([v.information_weight for v in views], np.float64)
+    J_intr, J_pose, r = rows_weighted(views, J_intr, J_pose, r)  # each row x sqrt(its weight in the solve)
     Jt = np.swapaxes(J_intr, 1, 2)
     B = Jt @ J_pose  # (V, P, 6)
     C_inv = np.linalg.pinv(np.swapaxes(J_pose, 1, 2) @ J_pose, rcond=1e-12, hermitian=True)
     BC = B @ C_inv
     # each view's pose-marginalised information and score
-    S_view = w[:, None, None] * (Jt @ J_intr - BC @ np.swapaxes(B, 1, 2))
-    g_view = w[:, None] * (np.einsum("vpr,vr->vp", Jt, r) - np.einsum("vpa,va->vp", BC, np.einsum("vra,vr->va", J_pose, r)))
+    S_view = Jt @ J_intr - BC @ np.swapaxes(B, 1, 2)
+    g_view = np.einsum("vpr,vr->vp", Jt, r) - np.einsum("vpa,va->vp", BC, np.einsum("vra,vr->va", J_pose, r))
     S_hold = np.zeros((labels.size, *S_view.shape[1:]))
     g_hold = np.zeros((labels.size, g_view.shape[1]))
     np.add.at(S_hold, hold_of_view, S_view)

@@ -156,12 +156,24 @@ def stacked_projections_and_jacobians(camera: CameraModel, views: Sequence[View]
     return projected, J_intr, J_pose
 
 
+def rows_weighted(views: Sequence[View], *stacks: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Zero-padded (V, R, ...) Jacobian or residual stacks with each corner's two rows x sqrt(its
+    weight): a view counting for w of an independent one (`information_weight`), times its corners'
+    own weights (`View.corner_weights`)."""
+    rows = stacks[0].shape[1]
+    scale = np.zeros((len(views), rows))
+    for k, view in enumerate(views):
+        scale[k, : 2 * view.ids.shape[0]] = np.repeat(np.sqrt(view.rows_weight()), 2)
+    return tuple(s * scale.reshape(scale.shape + (1,) * (s.ndim - 2)) for s in stacks)
+
+
 def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:
     """S = A - sum_v B_v C_v^-1 B_v^T, the intrinsics' information with all poses marginalised.
 
     Args:
         camera, views, rvecs, tvecs: as for `solve_jacobian`; each view's rows are weighted by its
-            `information_weight` (look-alikes of one hold share one view's worth).
+            `information_weight` (look-alikes of one hold share one view's worth) and its corners'
+            `corner_weights`.
 
     Returns:
         (P, P) float64 information for unit pixel noise (per coordinate).
@@ -170,9 +182,7 @@ def marginal_information(camera: CameraModel, views: Sequence[View], rvecs: np.n
     J_intr, J_pose = stacked_view_jacobians(camera, views, rvecs, tvecs)  # one pose per view, or ValueError
     if not views:
         return np.zeros((P, P))
-    # a view counting for w of an independent one: its rows x sqrt(w)
-    scale = np.sqrt(np.array([v.information_weight for v in views], np.float64))[:, None, None]
-    J_intr, J_pose = scale * J_intr, scale * J_pose
+    J_intr, J_pose = rows_weighted(views, J_intr, J_pose)
     A = J_intr.reshape(-1, P).T @ J_intr.reshape(-1, P)
     B = np.swapaxes(J_intr, 1, 2) @ J_pose  # (V, P, 6)
     C = np.swapaxes(J_pose, 1, 2) @ J_pose  # (V, 6, 6)

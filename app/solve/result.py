@@ -27,12 +27,28 @@ class View:
     # (coverage/corner_refine.py); None where not computed. The final solve takes these
     # (`as_refined`, unless --corners opencv), the capture's incremental solves OpenCV's.
     refined_px: np.ndarray | None = None
+    # (N,) bool: the corners the masked refinement left as OpenCV gave them (squares too small or too
+    # soft for its mask); set by `as_refined`, None where no refinement ran. They keep the markers'
+    # pull and, in a tracked frame, part of the frame before's error, so the final solve weighs them
+    # by their own measured variance (`robust.unrefined_corner_weights`).
+    unrefined: np.ndarray | None = None
+    # (N,) weight of each corner's rows relative to the view's own (`information_weight` and the
+    # weighted refinement's view weight): in the weighted refinement, the information and the noise
+    # estimate. None: every corner 1.
+    corner_weights: np.ndarray | None = None
 
     def as_refined(self) -> View:
         """This view with its masked-refined corners as its observations (itself where it has none)."""
         if self.refined_px is None:
             return self
-        return replace(self, image_points_px=self.refined_px, refined_px=None)
+        # the refinement returns OpenCV's corner, bit for bit, where it does not refine one
+        unrefined = np.all(self.refined_px == self.image_points_px, axis=1)
+        return replace(self, image_points_px=self.refined_px, refined_px=None, unrefined=unrefined)
+
+    def rows_weight(self) -> np.ndarray:
+        """(N,) each corner's weight in the solve: `information_weight` times its `corner_weights`."""
+        base = np.full(self.ids.shape[0], float(self.information_weight))
+        return base if self.corner_weights is None else base * self.corner_weights
 
 
 @dataclass(frozen=True, slots=True)

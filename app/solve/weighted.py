@@ -8,7 +8,9 @@ OpenCV's solution, this runs Levenberg-Marquardt on intrinsics and poses togethe
 rows scaled by sqrt(w_v), w_v = (sigma_typical / sigma_v)^2 from its own residuals (never above 1:
 a view is trusted at most as much as a typical one, so no single view can take over). The normal
 equations are reduced to the intrinsics by the same Schur complement the uncertainty uses, one
-6 x 6 pose block per view, so it stays cheap for 60 views.
+6 x 6 pose block per view, so it stays cheap for 60 views. Corners can carry weights of their own
+on top of their view's (`corner_weights`): the corners the masked refinement could not refine
+count by their measured variance against the refined ones (`robust.unrefined_corner_weights`).
 """
 
 from __future__ import annotations
@@ -45,8 +47,9 @@ def vector_of(camera: CameraModel) -> np.ndarray:
 
 
 def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarray, tvecs: np.ndarray,
-                    weights: np.ndarray, *, iterations: int = 15) -> tuple[CameraModel, np.ndarray, np.ndarray]:
-    """Minimise sum_v w_v |r_v|^2 over intrinsics and poses from a solved start (LM, Schur-reduced).
+                    weights: np.ndarray, *, corner_weights: Sequence[np.ndarray] | None = None,
+                    iterations: int = 15) -> tuple[CameraModel, np.ndarray, np.ndarray]:
+    """Minimise sum_v w_v sum_i c_vi |r_vi|^2 over intrinsics and poses from a solved start (LM, Schur-reduced).
 
     Each view's Jacobian comes from OpenCV with its projections, which the residuals take
     (`stacked_projections_and_jacobians`); the normal equations of all views are then formed and
@@ -57,6 +60,7 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
         camera: the start (OpenCV's solution).
         views: V views; rvecs, tvecs: (V, 3) their poses.
         weights: (V,) per-view weights (`view_weights`).
+        corner_weights: per view (N_v,) weights of its corners on top of the view's (None: all 1).
 
     Returns:
         (camera, rvecs (V, 3), tvecs (V, 3)); the start itself when no step lowers the cost.
@@ -70,12 +74,17 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
     observed = np.concatenate([v.image_points_px for v in views]) if V else np.zeros((0, 2))
     board = np.concatenate([v.object_points_m for v in views]).astype(np.float64) if V else np.zeros((0, 3))
     owner = np.repeat(np.arange(V), counts)
+    # each corner's weight, and the same for its two rows as the stacked Jacobians pad them
+    point_w = w[owner] * (np.concatenate([np.asarray(c, np.float64) for c in corner_weights]) if corner_weights is not None and V
+                          else 1.0)
+    row_w = np.zeros((V, rows))
+    for k, (start, n) in enumerate(zip(np.cumsum(counts) - counts, counts, strict=True)):
+        row_w[k, : 2 * n] = np.repeat(point_w[start : start + n], 2)
 
     def cost(cam: CameraModel, r: np.ndarray, t: np.ndarray) -> float:
         R = np.stack([cv2.Rodrigues(ri)[0] for ri in r]) if V else np.zeros((0, 3, 3))
         in_camera = np.einsum("mij,mj->mi", R[owner], board) + t[owner]
-        per_point = np.sum((observed - cam.project(in_camera)) ** 2, axis=1)
-        return float(np.sum(w * np.bincount(owner, per_point, minlength=V)))
+        return float(np.sum(point_w * np.sum((observed - cam.project(in_camera)) ** 2, axis=1)))
 
     lam = 1e-3
     current = cost(camera, rv, tv)
@@ -87,7 +96,7 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
         # the residuals from the projections OpenCV makes with the Jacobian (one call a view, not two)
         projected, J_intr, J_pose = stacked_projections_and_jacobians(cam, views, rv, tv)
         res = observed_rows - projected
-        J_intr_w, J_pose_w = J_intr * w[:, None, None], J_pose * w[:, None, None]
+        J_intr_w, J_pose_w = J_intr * row_w[:, :, None], J_pose * row_w[:, :, None]
         U = J_intr_w.reshape(-1, P).T @ J_intr.reshape(-1, P)
         W = np.swapaxes(J_intr_w, 1, 2) @ J_pose  # (V, P, 6)
         C = np.swapaxes(J_pose_w, 1, 2) @ J_pose  # (V, 6, 6)
