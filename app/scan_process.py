@@ -149,10 +149,11 @@ def _pixels_for_the_session(seen: Seen) -> np.ndarray:
 
     The replay judges a tracked frame by its grey image alone (`CalibrationSession.sharp_edges`);
     it is neither logged nor previewed, so of a colour frame the grey conversion the scan already
-    made crosses (a third of the bytes, and no second conversion in the replay). A frame skipped
-    in transit is only counted: none of its pixels cross (`_produce`). Frames the session decides keep their colour (previews, the check
-    image): a BGR frame's pixels, or an MJPG frame's JPEG beside its grey (`Frame.encoded`). The
-    decisions are the same: the replay would convert those frames to exactly this grey.
+    made crosses (a third of the bytes, and no second conversion in the replay). Frames the
+    session decides keep their colour (previews, the check image): a BGR frame's pixels, or an
+    MJPG frame's JPEG beside its grey (`Frame.encoded`). The decisions are the same: the replay
+    would convert those frames to exactly this grey. A frame skipped in transit is only counted:
+    none of its pixels cross (`_produce`).
     """
     return seen.frame.image if _judged(seen) else seen.frame.grey()
 

@@ -5,7 +5,7 @@ solve measures their residuals against the refined corners of the same views and
 the ratio (`robust.unrefined_corner_weights`) in its weighted refinement, and the information and
 noise estimate count them the same way. Synthetic views of the webcam (`_synthetic.py`) with a
 quarter of each view's corners carrying what an unrefined corner carries on the renders -- more
-noise and a pull the views share -- give the answer.
+noise and a pull the views share -- show the weights and where they take the solve.
 """
 
 from __future__ import annotations
