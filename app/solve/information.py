@@ -156,14 +156,20 @@ def stacked_projections_and_jacobians(camera: CameraModel, views: Sequence[View]
     return projected, J_intr, J_pose
 
 
+def padded_rows(per_corner: Sequence[np.ndarray], rows: int) -> np.ndarray:
+    """(V, rows): each view's (N_v,) per-corner values on the corner's two rows (x, y), zero beyond
+    its 2 N_v rows, as the stacked Jacobians pad them."""
+    out = np.zeros((len(per_corner), rows))
+    for k, values in enumerate(per_corner):
+        out[k, : 2 * len(values)] = np.repeat(values, 2)
+    return out
+
+
 def rows_weighted(views: Sequence[View], *stacks: np.ndarray) -> tuple[np.ndarray, ...]:
     """Zero-padded (V, R, ...) Jacobian or residual stacks with each corner's two rows x sqrt(its
     weight): a view counting for w of an independent one (`information_weight`), times its corners'
     own weights (`View.corner_weights`)."""
-    rows = stacks[0].shape[1]
-    scale = np.zeros((len(views), rows))
-    for k, view in enumerate(views):
-        scale[k, : 2 * view.ids.shape[0]] = np.repeat(np.sqrt(view.rows_weight()), 2)
+    scale = padded_rows([np.sqrt(v.rows_weight()) for v in views], stacks[0].shape[1])
     return tuple(s * scale.reshape(scale.shape + (1,) * (s.ndim - 2)) for s in stacks)
 
 

@@ -409,7 +409,7 @@ def build_calibration(
     rms = float(np.sqrt(np.mean(np.sum(all_res**2, axis=1))))
     view_rms = np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) for r in residuals])
     # the noise of a corner of weight 1: each corner's variance is sigma^2 / its weight (weighted.py)
-    w = np.concatenate([v.rows_weight() for v in views]) if views else np.zeros(0)
+    w = np.concatenate([v.rows_weight() for v in views])
     rms_typical = float(np.sqrt(np.sum(w * np.sum(all_res**2, axis=1)) / max(float(np.sum(w)), 1e-12)))
     sigma = noise_sigma_px(rms_typical, n_points=all_res.shape[0], n_params=len(intrinsic_names(camera.model)), n_views=len(views))
     covariance = intrinsic_covariance(camera, views, rvecs, tvecs, sigma_px=sigma)

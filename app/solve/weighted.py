@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from calibcoach.app.solve.information import intrinsic_names, stacked_projections_and_jacobians
+from calibcoach.app.solve.information import intrinsic_names, padded_rows, stacked_projections_and_jacobians
 from calibcoach.app.solve.result import View
 from calibcoach.drivers.lens import CameraModel
 
@@ -74,12 +74,11 @@ def weighted_refine(camera: CameraModel, views: Sequence[View], rvecs: np.ndarra
     observed = np.concatenate([v.image_points_px for v in views]) if V else np.zeros((0, 2))
     board = np.concatenate([v.object_points_m for v in views]).astype(np.float64) if V else np.zeros((0, 3))
     owner = np.repeat(np.arange(V), counts)
-    # each corner's weight, and the same for its two rows as the stacked Jacobians pad them
-    point_w = w[owner] * (np.concatenate([np.asarray(c, np.float64) for c in corner_weights]) if corner_weights is not None and V
-                          else 1.0)
-    row_w = np.zeros((V, rows))
-    for k, (start, n) in enumerate(zip(np.cumsum(counts) - counts, counts, strict=True)):
-        row_w[k, : 2 * n] = np.repeat(point_w[start : start + n], 2)
+    # each corner's weight: its view's times its own
+    corner_w = [w[k] * (1.0 if corner_weights is None else np.asarray(corner_weights[k], np.float64)) * np.ones(n)
+                for k, n in enumerate(counts)]
+    point_w = np.concatenate(corner_w) if V else np.zeros(0)
+    row_w = padded_rows(corner_w, rows)
 
     def cost(cam: CameraModel, r: np.ndarray, t: np.ndarray) -> float:
         R = np.stack([cv2.Rodrigues(ri)[0] for ri in r]) if V else np.zeros((0, 3, 3))
