@@ -15,6 +15,8 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import Seen, board_shift_px
@@ -22,7 +24,7 @@ from calibcoach.app.scan_stream import ScanStream
 from calibcoach.app.session import CalibrationSession, FrameOutcome, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
-from calibcoach.coverage.exposure import corner_velocities, worst_corner_speed_px_s
+from calibcoach.coverage.exposure import velocities_across, worst_corner_speed_px_s
 from calibcoach.coverage.redetect import RedetectionCounts
 from calibcoach.coverage.select import board_speed_px_s
 from calibcoach.drivers.base import Frame, FrameSource
@@ -156,14 +158,15 @@ class _Feeder:
 
     def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen) -> None:
         """The corners' velocities across `middle`, from its own neighbours: the session, which judges
-        only some frames, takes them for a judged frame; a tracked frame's fastest corner is kept for its hold."""
+        only some frames, takes them for a judged frame (its smear and its speed); a tracked frame's
+        fastest corner is kept for its hold."""
         if before is None or middle is None or middle.skipped or self.session is None:
             return  # a frame skipped in transit is never judged, nor held
-        sides = (before.detection, before.frame.timestamp_ns), (after.detection, after.frame.timestamp_ns)
-        if middle.tracked_from is None:
-            self.session.smear.give(middle.frame.index, *sides)
-        elif not middle.in_transit:  # a tracked frame in transit is judged, not held: no hold ever takes its speed
-            self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(corner_velocities(*sides[0], *sides[1]))
+        velocities = neighbour_velocities(before, middle, after)
+        if middle.tracked_from is None or middle.in_transit:  # judged (a tracked frame in transit too)
+            self.session.smear.give(middle.frame.index, velocities)
+        else:  # a tracked frame in transit is judged, not held: no hold ever takes its speed
+            self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(velocities)
 
     def _track(self, seen: Seen, before: Seen | None) -> None:
         assert self._last_full is not None
@@ -230,6 +233,17 @@ class _Feeder:
                                      blur_px=[b for b, ok in zip(blurs, still, strict=True) if ok],
                                      corner_speeds_px_s=[v for v, ok in zip(speeds_px_s, still, strict=True) if ok])
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
+
+
+def neighbour_velocities(before: Seen, middle: Seen, after: Seen) -> np.ndarray | None:
+    """(N, 2) px/s: the corners' velocities at `middle` from the frames either side of it in the footage.
+
+    A neighbour skipped in transit was never detected, so the other side alone tells the speed;
+    the frames the session judged before and after may lie a hold or a transit away, across which
+    a swing reads 2-3x its speed at the frame.
+    """
+    sides = [None if s.skipped else (s.detection, s.frame.timestamp_ns) for s in (before, after)]
+    return velocities_across((middle.detection, middle.frame.timestamp_ns), *sides)
 
 
 def _still_repeats(hold: _Hold, max_move_px: float) -> list[bool]:

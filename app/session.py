@@ -219,8 +219,9 @@ class CalibrationSession(SessionFinish):
         self.frames_seen += 1
         if len(self._samples) < _SAMPLE_FRAMES_FOR_DIAGNOSIS and detection.corner_count == 0 and self.frames_seen % 5 == 1:
             self._samples.append(frame.grey())
-        motion = self._motion_px_s(frame, detection, following)
+        from_neighbours = self.smear.given(frame.index)
         velocities = self.smear.velocities(frame.index, (detection, frame.timestamp_ns), self._previous, following)
+        motion = self._motion_px_s(frame, detection, following, velocities if from_neighbours else None)
         self.smear.saw(frame.index, frame.timestamp_ns)
         previous = self._previous[0]
         just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
@@ -269,9 +270,17 @@ class CalibrationSession(SessionFinish):
         opencv or a fisheye working model (`SessionFinish._refines_views`)."""
         return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges, blur_px=blur_px)
 
-    def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None) -> float | None:
+    def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None,
+                     neighbours: np.ndarray | None = None) -> float | None:
         """Corner speed at this frame, px/s: the central difference from the frame before to the one
         after it where both are known, else the one-sided difference there is (None: unknown).
+
+        `neighbours`: the corners' velocities across the frame from the frames either side of it in
+        the footage, where a replay that judges only some frames measured them (`SmearLedger.give`);
+        their median speed is taken. The frames judged before and after such a frame may lie several
+        frames away (a hold tracked between them, a transit skipped): across that span, a swing
+        read 2-3x its speed at the frame (a messy 720p render: 176-291 px/s where the neighbours
+        gave 62-87), and sharp frames were rejected as in transit that `--every-frame` kept.
 
         An exposure centred on the frame's time smears by its speed there times the exposure, and
         the central difference estimates that speed to second order. The larger of the backward and
@@ -285,6 +294,8 @@ class CalibrationSession(SessionFinish):
         """
         if not self.settings.use_motion_gate:
             return None
+        if neighbours is not None:
+            return float(np.median(np.linalg.norm(neighbours, axis=1)))
         (before, t_before), (after, t_after) = self._previous, following or (None, 0)
         if before is not None and after is not None:
             across = board_speed_px_s(before, t_before, after, t_after)

@@ -7,6 +7,7 @@ yardstick), the expected error E from the model covariance and from the jackknif
 captures (one capture's ratio scatters: its error is one draw); above 1 E understates.
 
     .venv/bin/python bench/expected_error.py [RENDER ...]   # e.g. smooth_dim720_mjpg_s105; default: all cached
+    .venv/bin/python bench/expected_error.py --every-frame --out expected_error_every_frame
 
 Writes bench/results/expected_error.md and .json.
 """
@@ -34,9 +35,9 @@ from calibcoach.drivers.replay import open_source  # noqa: E402
 RESULTS = ROOT / "results"
 
 
-def measure(name: str) -> dict:
+def measure(name: str, every_frame: bool = False) -> dict:
     path, truth, yardstick = cached_capture(name)
-    session, _stats = run_replay(open_source(path), BoardSpec())
+    session, _stats = run_replay(open_source(path), BoardSpec(), every_frame=every_frame)
     result = session.finish()
     sources = result.expected_errors
     return {
@@ -81,11 +82,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("renders", nargs="*", help="cached render names (default: every cached render)")
     parser.add_argument("--out", default="expected_error")
+    parser.add_argument("--every-frame", action="store_true", help="detect every frame in full (the scan's reference)")
     args = parser.parse_args()
     names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
     rows = []
     for name in names:
-        rows.append(measure(name))
+        rows.append(measure(name, args.every_frame))
         r = rows[-1]
         print(f"{name}: true {r['error_px']:.3f}, E model {r['model_px']:.3f}, between holds {r['between_holds_px']:.3f} "
               f"({r['holds']}), {r['grade']}", flush=True)

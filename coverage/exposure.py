@@ -75,6 +75,21 @@ def corner_velocities(before: Detection, before_ns: int, after: Detection, after
     return moved / dt_s
 
 
+def velocities_across(here: tuple[Detection, int], before: tuple[Detection, int] | None,
+                      after: tuple[Detection, int] | None) -> np.ndarray | None:
+    """The corners' velocities at a frame ((detection, timestamp_ns) `here`) from the frames either
+    side of it: across it where both show the board, else the faster one-sided difference there is
+    (a neighbour None: not seen, e.g. skipped in transit; None: no side tells)."""
+    if before is not None and after is not None:
+        across = corner_velocities(before[0], before[1], after[0], after[1])
+        if across is not None:
+            return across
+    sides = [corner_velocities(before[0], before[1], *here) if before is not None else None,
+             corner_velocities(*here, after[0], after[1]) if after is not None else None]
+    known = [v for v in sides if v is not None]
+    return max(known, key=lambda v: float(np.max(np.sum(v**2, axis=1)))) if known else None
+
+
 def worst_corner_speed_px_s(velocities: np.ndarray | None) -> float | None:
     """The fastest corner's speed, px/s (None where unknown): what the worst corner smears by, per second of exposure."""
     return None if velocities is None else float(np.sqrt(np.max(np.sum(velocities**2, axis=1))))
@@ -186,11 +201,16 @@ class SmearLedger:
         # (a replay, whose session judges only some): taken by `velocities`
         self._given: dict[int, np.ndarray | None] = {}
 
-    def give(self, index: int, before: tuple[Detection, int], after: tuple[Detection, int]) -> None:
-        """Note the corners' velocities at frame `index` from its neighbours ((detection, timestamp_ns) either side)."""
-        self._given[index] = corner_velocities(before[0], before[1], after[0], after[1])
+    def give(self, index: int, velocities: np.ndarray | None) -> None:
+        """Note the corners' velocities at frame `index`, measured from its neighbours in the footage
+        (`velocities_across`; None: they do not tell)."""
+        self._given[index] = velocities
         if len(self._given) > 64:  # given for frames never judged (a replay cut short): the oldest go
             del self._given[next(iter(self._given))]
+
+    def given(self, index: int) -> bool:
+        """Whether a caller that sees every frame gave the velocities at frame `index` (`give`)."""
+        return index in self._given
 
     def velocities(self, index: int, here: tuple[Detection, int], before: tuple[Detection | None, int | None],
                    after: tuple[Detection, int] | None) -> np.ndarray | None:

@@ -5,8 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calibcoach.app.replay import neighbour_velocities
+from calibcoach.app.scan import Seen
 from calibcoach.app.session import CalibrationSession, SessionSettings
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import Detection
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.lens import CameraModel
 
@@ -43,3 +46,36 @@ def test_with_one_neighbour_known_the_one_sided_difference_is_used() -> None:
     assert speed_at(636, None) == pytest.approx(120.0, rel=0.05)
     assert speed_at(None, None) is None
     assert speed_at(636, 644, gate=False) is None  # a folder of photos: no speed at all
+
+
+def test_the_neighbours_a_replay_measured_win_over_the_frames_judged_either_side() -> None:
+    """A replay judges only some frames: those either side of a judged one may lie a hold or a transit
+    away, across which a swing reads faster than the board moved at the frame."""
+    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings())
+    here = detection_at(CAMERA, (640, 360), 0.9)
+    session._previous = (detection_at(CAMERA, (600, 360), 0.9), 0)  # judged 5 frames before: 40 px away
+    following = (detection_at(CAMERA, (680, 360), 0.9), 10 * FRAME_NS)
+    frame = Frame(5, 5 * FRAME_NS, np.zeros((720, 1280), np.uint8))
+    assert session._motion_px_s(frame, here, following) == pytest.approx(240.0, rel=0.05)
+    neighbours = np.tile([30.0, 40.0], (here.corner_count, 1))  # the frames either side: 50 px/s
+    assert session._motion_px_s(frame, here, following, neighbours) == pytest.approx(50.0)
+    assert session._motion_px_s(frame, here, following, None) == pytest.approx(240.0, rel=0.05)
+
+
+def _seen(index: int, x: float | None, *, skipped: bool = False) -> Seen:
+    detection = Detection.empty() if x is None else detection_at(CAMERA, (x, 360), 0.9)
+    return Seen(Frame(index, index * FRAME_NS, np.zeros((720, 1280), np.uint8)), detection, None, None,
+                in_transit=skipped, skipped=skipped)
+
+
+def test_a_replay_measures_a_frame_beside_a_skipped_transit_from_its_other_side() -> None:
+    def speed(before: Seen, after: Seen) -> float:
+        v = neighbour_velocities(before, _seen(5, 640), after)
+        assert v is not None
+        return float(np.median(np.linalg.norm(v, axis=1)))
+
+    assert speed(_seen(4, 638), _seen(6, 644)) == pytest.approx(90.0, rel=0.05)  # across: 6 px in 2 frames
+    # the frame after was skipped in transit (never detected): the frame before alone, 2 px in one frame
+    assert speed(_seen(4, 638), _seen(6, None, skipped=True)) == pytest.approx(60.0, rel=0.05)
+    assert speed(_seen(4, None, skipped=True), _seen(6, 644)) == pytest.approx(120.0, rel=0.05)
+    assert neighbour_velocities(_seen(4, None, skipped=True), _seen(5, 640), _seen(6, None, skipped=True)) is None

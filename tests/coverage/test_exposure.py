@@ -14,6 +14,7 @@ from calibcoach.coverage.exposure import (
     ExposureReader,
     SmearLedger,
     corner_velocities,
+    velocities_across,
     worst_corner_speed_px_s,
 )
 from calibcoach.coverage.sharpness import SAMPLING_FLOOR_PX, EdgeBlur, edge_blur, steepest_gradient_sigma
@@ -102,6 +103,29 @@ def test_corner_velocities_need_shared_corners_and_a_trackable_move() -> None:
     assert corner_velocities(before, 0, _detection(grid + [MAX_NEIGHBOUR_MOVE_PX + 1, 0]), int(1e8)) is None  # in transit
     assert corner_velocities(before, 0, _detection(grid[:3]), int(1e8)) is None  # 3 shared corners
     assert corner_velocities(before, 5, after, 5) is None  # no time between them
+
+
+def test_velocities_across_a_frame_fall_back_to_the_faster_side_that_shows_the_board() -> None:
+    grid = np.stack(np.meshgrid(np.arange(4) * 40.0, np.arange(3) * 40.0), axis=-1).reshape(-1, 2) + 300
+    ns = round(INTERVAL_S * 1e9)
+    here = (_detection(grid), ns)
+    before, after = (_detection(grid - [1.0, 0]), 0), (_detection(grid + [3.0, 0]), 2 * ns)
+    v = velocities_across(here, before, after)
+    assert v is not None and np.allclose(v, [60.0, 0.0])  # 4 px over two intervals
+    # a neighbour not seen (skipped in transit): the other side alone, one interval
+    v = velocities_across(here, None, after)
+    assert v is not None and np.allclose(v, [90.0, 0.0])
+    v = velocities_across(here, before, None)
+    assert v is not None and np.allclose(v, [30.0, 0.0])
+    # the frame after shows too little of the board to go across: the faster of the sides that tell
+    v = velocities_across(here, before, (_detection(grid[:3] + [3.0, 0]), 2 * ns))
+    assert v is not None and np.allclose(v, [30.0, 0.0])
+    v = velocities_across(here, (_detection(grid + [-6.0, 0]), 0), (_detection(grid + [2.0, 0]), 2 * ns))
+    assert v is not None and np.allclose(v, [120.0, 0.0])  # across 8 px / 2 intervals
+    # across, the board moved past a neighbour's limit (27 px): each side alone, the faster
+    v = velocities_across(here, (_detection(grid - [15.0, 0]), 0), (_detection(grid + [12.0, 0]), 2 * ns))
+    assert v is not None and np.allclose(v, [450.0, 0.0])
+    assert velocities_across(here, None, None) is None
 
 
 def _ledger_with(speeds_px_frame: dict[int, float], *, exposure_frames: float | None) -> SmearLedger:
