@@ -219,9 +219,8 @@ class CalibrationSession(SessionFinish):
         self.frames_seen += 1
         if len(self._samples) < _SAMPLE_FRAMES_FOR_DIAGNOSIS and detection.corner_count == 0 and self.frames_seen % 5 == 1:
             self._samples.append(frame.grey())
-        from_neighbours = self.smear.given(frame.index)
         velocities = self.smear.velocities(frame.index, (detection, frame.timestamp_ns), self._previous, following)
-        motion = self._motion_px_s(frame, detection, following, velocities if from_neighbours else None)
+        motion = self._motion_px_s(frame, detection, following, velocities)
         self.smear.saw(frame.index, frame.timestamp_ns)
         previous = self._previous[0]
         just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
@@ -275,12 +274,12 @@ class CalibrationSession(SessionFinish):
         """Corner speed at this frame, px/s: the central difference from the frame before to the one
         after it where both are known, else the one-sided difference there is (None: unknown).
 
-        `neighbours`: the corners' velocities across the frame from the frames either side of it in
-        the footage, where a replay that judges only some frames measured them (`SmearLedger.give`);
-        their median speed is taken. The frames judged before and after such a frame may lie several
-        frames away (a hold tracked between them, a transit skipped): across that span, a swing
-        read 2-3x its speed at the frame (a messy 720p render: 176-291 px/s where the neighbours
-        gave 62-87), and sharp frames were rejected as in transit that `--every-frame` kept.
+        `neighbours`: the corners' velocities at the frame (`SmearLedger.velocities`), whose median
+        speed is taken where known: a replay that judges only some frames measures them from the
+        frames either side in the footage, since the frames judged before and after may lie a hold
+        or a skipped transit away, across which a swing read 2-3x its speed at the frame (a messy
+        720p render: 176-291 px/s where the neighbours gave 62-87; sharp frames were rejected as in
+        transit that `--every-frame` kept).
 
         An exposure centred on the frame's time smears by its speed there times the exposure, and
         the central difference estimates that speed to second order. The larger of the backward and

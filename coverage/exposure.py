@@ -208,22 +208,15 @@ class SmearLedger:
         if len(self._given) > 64:  # given for frames never judged (a replay cut short): the oldest go
             del self._given[next(iter(self._given))]
 
-    def given(self, index: int) -> bool:
-        """Whether a caller that sees every frame gave the velocities at frame `index` (`give`)."""
-        return index in self._given
-
     def velocities(self, index: int, here: tuple[Detection, int], before: tuple[Detection | None, int | None],
                    after: tuple[Detection, int] | None) -> np.ndarray | None:
         """The corners' velocities at frame `index`, px/s, from its neighbours' (detection, timestamp_ns):
-        those given for it (`give`: a replay, which sees the frames it tracks too), else across it from
-        the frame judged before to the one after, else from one side (None: unknown, or the board jumped)."""
+        those given for it (`give`: a replay, which sees the frames it tracks too), else from the
+        frames judged before and after it (`velocities_across`; None: unknown, or the board jumped).
+        A live session and the replay of its recording so read the same frames the same way."""
         if index in self._given:
             return self._given.pop(index)
-        if before[0] is not None and after is not None:
-            return corner_velocities(before[0], before[1], after[0], after[1])  # type: ignore[arg-type]
-        if before[0] is not None:
-            return corner_velocities(before[0], before[1], here[0], here[1])  # type: ignore[arg-type]
-        return None if after is None else corner_velocities(here[0], here[1], after[0], after[1])
+        return velocities_across(here, None if before[0] is None else before, after)  # type: ignore[arg-type]
 
     def saw(self, index: int, timestamp_ns: int) -> None:
         """A frame went by: its time gives the frame interval."""
