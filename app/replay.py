@@ -15,8 +15,6 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-import numpy as np
-
 from calibcoach.app.assistant import Assistant, Step
 from calibcoach.app.focus_watch import FocusEvent, focus_events
 from calibcoach.app.scan import Seen, board_shift_px
@@ -157,15 +155,15 @@ class _Feeder:
             self._settle_holds(final=True)
 
     def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen) -> None:
-        """The corners' velocities across `middle`, from its own neighbours: the session, which judges
-        only some frames, takes them for a judged frame (its smear and its speed); a tracked frame's
-        fastest corner is kept for its hold."""
+        """`middle`'s neighbours in the footage: the session, which judges only some frames, measures a
+        judged frame's speed and smear across them; a tracked frame's fastest corner is kept for its hold."""
         if before is None or middle is None or middle.skipped or self.session is None:
             return  # a frame skipped in transit is never judged, nor held
-        velocities = neighbour_velocities(before, middle, after)
+        sides = footage_neighbours(before, after)
         if middle.tracked_from is None or middle.in_transit:  # judged (a tracked frame in transit too)
-            self.session.smear.give(middle.frame.index, velocities)
+            self.session.note_neighbours(middle.frame.index, *sides)
         else:  # a tracked frame in transit is judged, not held: no hold ever takes its speed
+            velocities = velocities_across((middle.detection, middle.frame.timestamp_ns), *sides)
             self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(velocities)
 
     def _track(self, seen: Seen, before: Seen | None) -> None:
@@ -235,15 +233,11 @@ class _Feeder:
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
 
 
-def neighbour_velocities(before: Seen, middle: Seen, after: Seen) -> np.ndarray | None:
-    """(N, 2) px/s: the corners' velocities at `middle` from the frames either side of it in the footage.
-
-    A neighbour skipped in transit was never detected, so the other side alone tells the speed;
-    the frames the session judged before and after may lie a hold or a transit away, across which
-    a swing reads 2-3x its speed at the frame.
-    """
-    sides = [None if s.skipped else (s.detection, s.frame.timestamp_ns) for s in (before, after)]
-    return velocities_across((middle.detection, middle.frame.timestamp_ns), *sides)
+def footage_neighbours(before: Seen, after: Seen) -> tuple[tuple[Detection, int] | None, tuple[Detection, int] | None]:
+    """(detection, timestamp_ns) of the frames either side of one, None for a frame skipped in transit
+    (never detected: the other side alone tells the speed)."""
+    before_side, after_side = ((None if s.skipped else (s.detection, s.frame.timestamp_ns)) for s in (before, after))
+    return before_side, after_side
 
 
 def _still_repeats(hold: _Hold, max_move_px: float) -> list[bool]:

@@ -49,7 +49,7 @@ from calibcoach.coverage.candidates import (
     reachable_cells,
 )
 from calibcoach.coverage.detector import Detection
-from calibcoach.coverage.exposure import SmearLedger, worst_corner_speed_px_s
+from calibcoach.coverage.exposure import SmearLedger, velocities_across, worst_corner_speed_px_s
 from calibcoach.coverage.grid import CoverageMap, region_grid_shape
 from calibcoach.coverage.pose import BoardPose
 from calibcoach.coverage.select import (
@@ -118,6 +118,8 @@ class CalibrationSession(SessionFinish):
         self.noise_px: float | None = None  # corner noise per coordinate from the latest incremental solve
         self.frames_seen = 0
         self._previous: tuple[Detection, int] | tuple[None, None] = (None, None)
+        # frame index -> (before, after): its neighbours in the footage, where a replay saw them (`note_neighbours`)
+        self._neighbours: dict[int, tuple[tuple[Detection, int] | None, tuple[Detection, int] | None]] = {}
         self._check_image: tuple[int, Frame] | None = None
         self._samples: list[np.ndarray] = []  # a few frames kept for diagnosing a wrong board
         self.board_mismatch: BoardError | None = None  # ... or what the capture's board watch found (app/board_watch.py)
@@ -219,8 +221,10 @@ class CalibrationSession(SessionFinish):
         self.frames_seen += 1
         if len(self._samples) < _SAMPLE_FRAMES_FOR_DIAGNOSIS and detection.corner_count == 0 and self.frames_seen % 5 == 1:
             self._samples.append(frame.grey())
-        velocities = self.smear.velocities(frame.index, (detection, frame.timestamp_ns), self._previous, following)
-        motion = self._motion_px_s(frame, detection, following, velocities)
+        here = (detection, frame.timestamp_ns)
+        before, after = self._neighbours.pop(frame.index, (None if self._previous[0] is None else self._previous, following))
+        velocities = velocities_across(here, before, after)
+        motion = self._motion_px_s(here, before, after, velocities)
         self.smear.saw(frame.index, frame.timestamp_ns)
         previous = self._previous[0]
         just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
@@ -269,17 +273,21 @@ class CalibrationSession(SessionFinish):
         opencv or a fisheye working model (`SessionFinish._refines_views`)."""
         return frame_view(frame, detection, self.board, refine=self._refines_views, edges=edges, blur_px=blur_px)
 
-    def _motion_px_s(self, frame: Frame, detection: Detection, following: tuple[Detection, int] | None,
-                     neighbours: np.ndarray | None = None) -> float | None:
-        """Corner speed at this frame, px/s: the central difference from the frame before to the one
-        after it where both are known, else the one-sided difference there is (None: unknown).
+    def _motion_px_s(self, here: tuple[Detection, int], before: tuple[Detection, int] | None,
+                     after: tuple[Detection, int] | None, velocities: np.ndarray | None) -> float | None:
+        """Corner speed at this frame, px/s: the median of its corners' `velocities` (across it from
+        the frame before to the one after where both show the board, else one-sided:
+        `velocities_across`), else, where those do not tell (the board jumped more than a
+        neighbour's limit, or shares too few corners), the median corner move across or the
+        larger one-sided one; None: unknown. Each (detection, timestamp_ns) of `here` and the
+        neighbours `before` and `after` (None: not seen).
 
-        `neighbours`: the corners' velocities at the frame (`SmearLedger.velocities`), whose median
-        speed is taken where known: a replay that judges only some frames measures them from the
-        frames either side in the footage, since the frames judged before and after may lie a hold
-        or a skipped transit away, across which a swing read 2-3x its speed at the frame (a messy
-        720p render: 176-291 px/s where the neighbours gave 62-87; sharp frames were rejected as in
-        transit that `--every-frame` kept).
+        The neighbours are the frames either side of this one in the footage: those judged before
+        and after it live, those a replay saw around it where it judges only some
+        (`note_neighbours`), since the frames it judged may lie a hold or a skipped transit away,
+        across which a swing read 2-3x its speed at the frame (a messy 720p render: 176-291 px/s,
+        and a frame between two skipped ones 2000 px/s, where the neighbours gave 62-87; sharp
+        frames were rejected as in transit that `--every-frame` kept).
 
         An exposure centred on the frame's time smears by its speed there times the exposure, and
         the central difference estimates that speed to second order. The larger of the backward and
@@ -293,17 +301,23 @@ class CalibrationSession(SessionFinish):
         """
         if not self.settings.use_motion_gate:
             return None
-        if neighbours is not None:
-            return float(np.median(np.linalg.norm(neighbours, axis=1)))
-        (before, t_before), (after, t_after) = self._previous, following or (None, 0)
+        if velocities is not None:
+            return float(np.median(np.linalg.norm(velocities, axis=1)))
         if before is not None and after is not None:
-            across = board_speed_px_s(before, t_before, after, t_after)
+            across = board_speed_px_s(before[0], before[1], after[0], after[1])
             if across is not None:
                 return across
-        speeds = [board_speed_px_s(other, t_other, detection, frame.timestamp_ns)
-                  for other, t_other in ((before, t_before), (after, t_after)) if other is not None]
+        speeds = [board_speed_px_s(other[0], other[1], here[0], here[1]) for other in (before, after) if other is not None]
         known = [v for v in speeds if v is not None]
         return max(known) if known else None
+
+    def note_neighbours(self, index: int, before: tuple[Detection, int] | None, after: tuple[Detection, int] | None) -> None:
+        """The frames either side of frame `index` in the footage ((detection, timestamp_ns); None: not
+        seen, e.g. skipped in transit), from a replay that judges only some frames: its speed and
+        smear are measured across them rather than across the frames judged before and after it."""
+        self._neighbours[index] = (before, after)
+        if len(self._neighbours) > 64:  # noted for frames never judged (a replay cut short): the oldest go
+            del self._neighbours[next(iter(self._neighbours))]
 
     def _error_cut(self, detection: Detection, pose: BoardPose | None) -> float:
         """Relative cut of E if this frame joined (0 when there is nothing to compare with yet)."""

@@ -197,26 +197,6 @@ class SmearLedger:
         self._speed_px_s: dict[int, float] = {}  # frame index -> its fastest corner's speed
         self._intervals_s: list[float] = []  # between consecutive frames seen (the latest few)
         self._last: tuple[int, int] | None = None  # (index, timestamp_ns) of the last frame seen
-        # frame index -> its corners' velocities across it, measured by a caller that sees every frame
-        # (a replay, whose session judges only some): taken by `velocities`
-        self._given: dict[int, np.ndarray | None] = {}
-
-    def give(self, index: int, velocities: np.ndarray | None) -> None:
-        """Note the corners' velocities at frame `index`, measured from its neighbours in the footage
-        (`velocities_across`; None: they do not tell)."""
-        self._given[index] = velocities
-        if len(self._given) > 64:  # given for frames never judged (a replay cut short): the oldest go
-            del self._given[next(iter(self._given))]
-
-    def velocities(self, index: int, here: tuple[Detection, int], before: tuple[Detection | None, int | None],
-                   after: tuple[Detection, int] | None) -> np.ndarray | None:
-        """The corners' velocities at frame `index`, px/s, from its neighbours' (detection, timestamp_ns):
-        those given for it (`give`: a replay, which sees the frames it tracks too), else from the
-        frames judged before and after it (`velocities_across`; None: unknown, or the board jumped).
-        A live session and the replay of its recording so read the same frames the same way."""
-        if index in self._given:
-            return self._given.pop(index)
-        return velocities_across(here, None if before[0] is None else before, after)  # type: ignore[arg-type]
 
     def saw(self, index: int, timestamp_ns: int) -> None:
         """A frame went by: its time gives the frame interval."""

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibcoach.app.replay import neighbour_velocities
+from calibcoach.app.replay import footage_neighbours
 from calibcoach.app.scan import Seen
 from calibcoach.app.session import CalibrationSession, SessionSettings
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.exposure import velocities_across
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.lens import CameraModel
 
@@ -22,12 +23,10 @@ FRAME_NS = 33_333_333  # 30 fps
 def speed_at(before_x: float | None, after_x: float | None, *, gate: bool = True) -> float | None:
     """The session's speed for a board at x = 640 px whose frames before and after show it at those x."""
     session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings(use_motion_gate=gate))
-    here = detection_at(CAMERA, (640, 360), 0.9)
-    if before_x is not None:
-        session._previous = (detection_at(CAMERA, (before_x, 360), 0.9), 0)
-    following = None if after_x is None else (detection_at(CAMERA, (after_x, 360), 0.9), 2 * FRAME_NS)
-    frame = Frame(1, FRAME_NS, np.zeros((720, 1280), np.uint8))
-    return session._motion_px_s(frame, here, following)
+    here = (detection_at(CAMERA, (640, 360), 0.9), FRAME_NS)
+    before = None if before_x is None else (detection_at(CAMERA, (before_x, 360), 0.9), 0)
+    after = None if after_x is None else (detection_at(CAMERA, (after_x, 360), 0.9), 2 * FRAME_NS)
+    return session._motion_px_s(here, before, after, velocities_across(here, before, after))
 
 
 def test_a_board_at_the_turn_of_a_swing_is_still_at_the_frame() -> None:
@@ -48,18 +47,22 @@ def test_with_one_neighbour_known_the_one_sided_difference_is_used() -> None:
     assert speed_at(636, 644, gate=False) is None  # a folder of photos: no speed at all
 
 
-def test_the_neighbours_a_replay_measured_win_over_the_frames_judged_either_side() -> None:
+def test_the_neighbours_a_replay_saw_win_over_the_frames_judged_either_side() -> None:
     """A replay judges only some frames: those either side of a judged one may lie a hold or a transit
     away, across which a swing reads faster than the board moved at the frame."""
-    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings())
-    here = detection_at(CAMERA, (640, 360), 0.9)
-    session._previous = (detection_at(CAMERA, (600, 360), 0.9), 0)  # judged 5 frames before: 40 px away
-    following = (detection_at(CAMERA, (680, 360), 0.9), 10 * FRAME_NS)
-    frame = Frame(5, 5 * FRAME_NS, np.zeros((720, 1280), np.uint8))
-    assert session._motion_px_s(frame, here, following) == pytest.approx(240.0, rel=0.05)
-    neighbours = np.tile([30.0, 40.0], (here.corner_count, 1))  # the frames either side: 50 px/s
-    assert session._motion_px_s(frame, here, following, neighbours) == pytest.approx(50.0)
-    assert session._motion_px_s(frame, here, following, None) == pytest.approx(240.0, rel=0.05)
+    def judged_speed(*, noted: bool) -> float | None:
+        session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings())
+        first = Frame(0, 0, np.zeros((720, 1280), np.uint8))
+        session.process(first, detection_at(CAMERA, (600, 360), 0.9))  # judged 5 frames before: 40 px away
+        if noted:  # the frames either side in the footage: 1 px away each
+            session.note_neighbours(5, (detection_at(CAMERA, (639, 360), 0.9), 4 * FRAME_NS),
+                                    (detection_at(CAMERA, (641, 360), 0.9), 6 * FRAME_NS))
+        following = (detection_at(CAMERA, (680, 360), 0.9), 10 * FRAME_NS)  # judged 5 frames after
+        frame = Frame(5, 5 * FRAME_NS, np.zeros((720, 1280), np.uint8))
+        return session.process(frame, detection_at(CAMERA, (640, 360), 0.9), following=following).motion_px_s
+
+    assert judged_speed(noted=False) == pytest.approx(240.0, rel=0.05)  # 80 px over 10 frames
+    assert judged_speed(noted=True) == pytest.approx(30.0, rel=0.05)  # 2 px over 2 frames
 
 
 def _seen(index: int, x: float | None, *, skipped: bool = False) -> Seen:
@@ -69,13 +72,17 @@ def _seen(index: int, x: float | None, *, skipped: bool = False) -> Seen:
 
 
 def test_a_replay_measures_a_frame_beside_a_skipped_transit_from_its_other_side() -> None:
-    def speed(before: Seen, after: Seen) -> float:
-        v = neighbour_velocities(before, _seen(5, 640), after)
-        assert v is not None
-        return float(np.median(np.linalg.norm(v, axis=1)))
+    def speed(before: Seen, after: Seen) -> float | None:
+        here = (detection_at(CAMERA, (640, 360), 0.9), 5 * FRAME_NS)
+        return speed_between(here, *footage_neighbours(before, after))
 
     assert speed(_seen(4, 638), _seen(6, 644)) == pytest.approx(90.0, rel=0.05)  # across: 6 px in 2 frames
     # the frame after was skipped in transit (never detected): the frame before alone, 2 px in one frame
     assert speed(_seen(4, 638), _seen(6, None, skipped=True)) == pytest.approx(60.0, rel=0.05)
     assert speed(_seen(4, None, skipped=True), _seen(6, 644)) == pytest.approx(120.0, rel=0.05)
-    assert neighbour_velocities(_seen(4, None, skipped=True), _seen(5, 640), _seen(6, None, skipped=True)) is None
+    assert speed(_seen(4, None, skipped=True), _seen(6, None, skipped=True)) is None
+
+
+def speed_between(here, before, after) -> float | None:
+    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings())
+    return session._motion_px_s(here, before, after, velocities_across(here, before, after))
