@@ -160,9 +160,9 @@ class _Feeder:
         if before is None or middle is None or middle.skipped or self.session is None:
             return  # a frame skipped in transit is never judged, nor held
         sides = footage_neighbours(before, after)
-        if middle.tracked_from is None or middle.in_transit:  # judged (a tracked frame in transit too)
+        if middle.tracked_from is None or middle.in_transit:  # judged: a tracked frame in transit too, never held
             self.session.note_neighbours(middle.frame.index, *sides)
-        else:  # a tracked frame in transit is judged, not held: no hold ever takes its speed
+        else:  # a tracked frame of a hold: its fastest corner, for the final solve's smear test
             velocities = velocities_across((middle.detection, middle.frame.timestamp_ns), *sides)
             self._corner_speeds[middle.frame.index] = worst_corner_speed_px_s(velocities)
 
