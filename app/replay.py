@@ -112,7 +112,7 @@ class _Feeder:
         self.read = 0
         self.stopped = self.interrupted = False
         self._holds: deque[_Hold] = deque()
-        self._usable: dict[int, str] = {}  # fully detected frame -> "usable", "moving" or "unusable"
+        self._usable: dict[int, str] = {}  # fully detected frame -> "usable", "moving", "no board" or "unusable"
         self._last_full: Seen | None = None
         self._last_seen: Seen | None = None  # the frame before the one being fed
         self._two_before: Seen | None = None  # ... and the one before that
@@ -188,7 +188,7 @@ class _Feeder:
             return False
         decision = step.outcome.decision
         self._usable[step.frame.index] = "usable" if decision.accepted or decision.quality >= 1.0 else \
-            "moving" if decision.reason == "moving" else "unusable"
+            decision.reason if decision.reason in ("moving", "no board") else "unusable"
         self._settle_holds()
         if self.on_outcome is not None:
             self.on_outcome(step.outcome, step.frame)
@@ -207,9 +207,11 @@ class _Feeder:
                 return  # wait for the frame after the hold to be judged
             self._holds.popleft()
             # The hold's frames are as sharp as a usable frame of it; where its fully detected
-            # frames were rejected only for moving (a move's first or last frame), the tracked
-            # frames' own stillness decides.
-            usable = "usable" in judged or all(j in ("moving", None) for j in judged)
+            # frames were rejected only for moving (a move's first or last frame, a board just
+            # come into view) or showed no board (it left), the tracked frames' own stillness
+            # decides. (A two-frame glimpse of a messy capture -- just come into view, then gone
+            # -- kept its second frame with --every-frame, for 9.4% of the coverage, and lost it here.)
+            usable = "usable" in judged or all(j in ("moving", "no board", None) for j in judged)
             # A repeat between which and its neighbours the board moved at most the smear limit cannot
             # have smeared more; one that moved more is judged by its own image, as every frame is
             # with --every-frame (on a 104 deg 1080p lens at 20 fps, a steady hand's tremor moves the

@@ -199,6 +199,7 @@ class CalibrationSession(SessionFinish):
         as for detected frames, and ignored where the source has no motion gate: photo folders).
         """
         edges = edge_blur(frame.grey(), detection.corners_px, detection.object_points_m)
+        self.selector.note_sharpness(edges)
         motion = motion_px_s if self.settings.use_motion_gate else None
         return edges if self.selector.unsharp(motion_px_s=motion, blur_px=edges.sharp_px, edges=edges) is None else None
 

@@ -184,6 +184,16 @@ class FrameSelector:
             return float(np.percentile(self._seen_sharpness, 5))
         return None
 
+    def note_sharpness(self, edges: EdgeBlur | None) -> None:
+        """A frame with a board had its edges measured: its sharper family counts towards this camera's
+        sharpness until three frames are kept (`own_sharpness_px`). Judged frames (`decide`) and the
+        frames a replay tracked and measured (`CalibrationSession.sharp_edges`) alike: a replay that
+        judged only its fully detected frames learnt the camera's sharpness later than `--every-frame`
+        and kept rejecting moving-looking frames on the speed hint alone meanwhile."""
+        if edges is not None and np.isfinite(edges.sharp_px) and edges.sharp_px <= self.settings.max_blur_px \
+                and len(self._blurs) < 3:
+            self._seen_sharpness.append(float(edges.sharp_px))
+
     def blur_limit_px(self) -> float:
         """The blur a frame may show: absolute, or relative to this camera's own sharpness once known."""
         s = self.settings
@@ -260,8 +270,7 @@ class FrameSelector:
             # is smeared by the deceleration (0.4 px coherent corner shifts seen in simulation) while
             # the speed to the next frame already looks still.
             return Decision(False, "moving", "board just came into view", quality=0.25), None
-        if edges is not None and np.isfinite(edges.sharp_px) and len(self._blurs) < 3:
-            self._seen_sharpness.append(float(edges.sharp_px))
+        self.note_sharpness(edges)
         unsharp = self.unsharp(motion_px_s=motion_px_s, blur_px=blur_px, edges=edges)
         if unsharp is not None:
             return unsharp, None

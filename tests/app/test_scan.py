@@ -312,6 +312,26 @@ def test_tracked_frames_that_moved_are_judged_by_their_own_image(recordings_dir:
     assert used[5] == []  # smeared: never in the solve
 
 
+def test_a_glimpse_of_the_board_between_empty_frames_is_judged_by_its_own_image(recordings_dir: Path, tmp_path: Path) -> None:
+    # Footage with a motion gate: after a first hold (frames 0-4) and empty frames, the board comes
+    # into view at frame 10 (fully detected, rejected as just come into view), is held for frames
+    # 11-12 (tracked) and is gone at frame 13 (no board). Neither judged frame around the glimpse was
+    # usable, yet neither says its held frames are unsharp: their own images decide, as with every
+    # frame judged (a messy capture's two-frame glimpse kept its second frame with --every-frame,
+    # for 9.4% of the coverage).
+    rng = np.random.default_rng(3)
+    empty = [np.clip(rng.normal(120, 2.0, (720, 1280)), 0, 255).astype(np.uint8) for _ in range(5)]
+    glimpse = _hold(recordings_dir, 0, 5, seed=4) + empty + _hold(recordings_dir, 30, 3, seed=5) + empty[:4]
+    folder = _write(tmp_path / "glimpse", glimpse)
+    settings = SessionSettings(stop_when_done=False, use_motion_gate=True)
+    seen = {}
+    session, _stats = run_replay(ImageFolderSource(folder), BoardSpec(), settings,
+                                 on_outcome=lambda o, f: seen.__setitem__(f.index, o.decision))
+    assert seen[10].reason == "moving" and seen[10].detail == "board just came into view"
+    assert seen[13].reason == "no board" and 11 not in seen and 12 not in seen  # tracked, not judged
+    assert {11, 12} <= {v.frame_index for v, _q in session._reserve}
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_what_is_tracked_does_not_depend_on_the_number_of_workers(recordings_dir: Path, tmp_path: Path, workers: int) -> None:
     folder = _held_folder(recordings_dir, tmp_path, [0, 30, 66], hold=12)

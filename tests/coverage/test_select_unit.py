@@ -180,6 +180,23 @@ def test_before_three_kept_frames_the_sharpest_frames_seen_give_the_cameras_shar
     assert decide(sel, det, pose, edges=EdgeBlur(1.2, 1.2), **moving).reason == "moving"
 
 
+def test_frames_measured_outside_the_judgement_count_towards_the_cameras_sharpness() -> None:
+    # a replay measures the edges of tracked frames it judges by their own image: they are frames
+    # with a board seen, as judged ones are, up to the same blur limit and until three frames are kept
+    sel = selector()
+    for sharp in [0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4]:
+        sel.note_sharpness(EdgeBlur(sharp, sharp))
+    sel.note_sharpness(EdgeBlur(99.0, 99.0))  # past the absolute blur limit: not this camera's sharpness
+    sel.note_sharpness(EdgeBlur(float("inf"), float("inf")))
+    sel.note_sharpness(None)
+    assert sel.own_sharpness_px() is None
+    sel.note_sharpness(EdgeBlur(0.85, 0.85))  # the 8th
+    assert sel.own_sharpness_px() == pytest.approx(np.percentile([0.8, 0.9, 1.0, 1.1, 1.2, 1.3, 1.4, 0.85], 5))
+    sel._blurs += [1.0, 1.0, 1.0]  # three kept: their median is the camera's sharpness, nothing more is noted
+    sel.note_sharpness(EdgeBlur(0.5, 0.5))
+    assert sel.own_sharpness_px() == 1.0 and len(sel._seen_sharpness) == 8
+
+
 def edges_with_smear(sharp: float, smear: float) -> EdgeBlur:
     """Edge widths for a smear of `smear` px along the board's x axis over a `sharp` px lens blur."""
     return EdgeBlur(sharp, float(np.sqrt(sharp**2 + smear**2 / 12.0)))
