@@ -210,7 +210,7 @@ class _Feeder:
             # frames were rejected only for moving (a move's first or last frame, a board just
             # come into view) or showed no board (it left), the tracked frames' own stillness
             # decides. (A two-frame glimpse of a messy capture -- just come into view, then gone
-            # -- kept its second frame with --every-frame, for 9.4% of the coverage, and lost it here.)
+            # -- kept its second frame with --every-frame, for 9.4% of the coverage; a replay lost it.)
             usable = "usable" in judged or all(j in ("moving", "no board", None) for j in judged)
             # A repeat between which and its neighbours the board moved at most the smear limit cannot
             # have smeared more; one that moved more is judged by its own image, as every frame is
