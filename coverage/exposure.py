@@ -87,7 +87,7 @@ def velocities_across(here: tuple[Detection, int], before: tuple[Detection, int]
     sides = [corner_velocities(before[0], before[1], *here) if before is not None else None,
              corner_velocities(*here, after[0], after[1]) if after is not None else None]
     known = [v for v in sides if v is not None]
-    return max(known, key=lambda v: float(np.max(np.sum(v**2, axis=1)))) if known else None
+    return max(known, key=worst_corner_speed_px_s) if known else None
 
 
 def worst_corner_speed_px_s(velocities: np.ndarray | None) -> float | None:

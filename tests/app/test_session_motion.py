@@ -22,10 +22,15 @@ FRAME_NS = 33_333_333  # 30 fps
 
 def speed_at(before_x: float | None, after_x: float | None, *, gate: bool = True) -> float | None:
     """The session's speed for a board at x = 640 px whose frames before and after show it at those x."""
-    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings(use_motion_gate=gate))
     here = (detection_at(CAMERA, (640, 360), 0.9), FRAME_NS)
     before = None if before_x is None else (detection_at(CAMERA, (before_x, 360), 0.9), 0)
     after = None if after_x is None else (detection_at(CAMERA, (after_x, 360), 0.9), 2 * FRAME_NS)
+    return speed_between(here, before, after, gate=gate)
+
+
+def speed_between(here, before, after, *, gate: bool = True) -> float | None:
+    """The session's speed at `here` from its neighbours (each (detection, timestamp_ns) or None)."""
+    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings(use_motion_gate=gate))
     return session._motion_px_s(here, before, after, velocities_across(here, before, after))
 
 
@@ -81,8 +86,3 @@ def test_a_replay_measures_a_frame_beside_a_skipped_transit_from_its_other_side(
     assert speed(_seen(4, 638), _seen(6, None, skipped=True)) == pytest.approx(60.0, rel=0.05)
     assert speed(_seen(4, None, skipped=True), _seen(6, 644)) == pytest.approx(120.0, rel=0.05)
     assert speed(_seen(4, None, skipped=True), _seen(6, None, skipped=True)) is None
-
-
-def speed_between(here, before, after) -> float | None:
-    session = CalibrationSession(BoardSpec(), CAMERA.image_size, SessionSettings())
-    return session._motion_px_s(here, before, after, velocities_across(here, before, after))
