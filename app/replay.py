@@ -144,6 +144,8 @@ class _Feeder:
                 if self._judged(self.assistant.feed_detected(seen.frame, seen.detection, in_transit=seen.in_transit)):
                     break
             else:
+                # the last frame has no frame after it: its speed is measured from the one before, as live
+                self._note_velocities(self._two_before, self._last_seen, None)
                 if self.assistant is not None:
                     self._judged(self.assistant.flush())
         except KeyboardInterrupt:
@@ -154,7 +156,7 @@ class _Feeder:
                 close()
             self._settle_holds(final=True)
 
-    def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen) -> None:
+    def _note_velocities(self, before: Seen | None, middle: Seen | None, after: Seen | None) -> None:
         """`middle`'s neighbours in the footage: the session, which judges only some frames, measures a
         judged frame's speed and smear across them; a tracked frame's fastest corner is kept for its hold."""
         if before is None or middle is None or middle.skipped or self.session is None:
@@ -235,10 +237,10 @@ class _Feeder:
             session.add_held_repeats([(f, d) for (f, d, _s), ok in zip(hold.repeats, still, strict=True) if not ok], usable=False)
 
 
-def footage_neighbours(before: Seen, after: Seen) -> tuple[tuple[Detection, int] | None, tuple[Detection, int] | None]:
+def footage_neighbours(before: Seen, after: Seen | None) -> tuple[tuple[Detection, int] | None, tuple[Detection, int] | None]:
     """(detection, timestamp_ns) of the frames either side of one, None for a frame skipped in transit
-    (never detected: the other side alone tells the speed)."""
-    before_side, after_side = ((None if s.skipped else (s.detection, s.frame.timestamp_ns)) for s in (before, after))
+    (never detected: the other side alone tells the speed) and after the footage's last frame."""
+    before_side, after_side = ((None if s is None or s.skipped else (s.detection, s.frame.timestamp_ns)) for s in (before, after))
     return before_side, after_side
 
 

@@ -86,3 +86,23 @@ def test_a_replay_measures_a_frame_beside_a_skipped_transit_from_its_other_side(
     assert speed(_seen(4, 638), _seen(6, None, skipped=True)) == pytest.approx(60.0, rel=0.05)
     assert speed(_seen(4, None, skipped=True), _seen(6, 644)) == pytest.approx(120.0, rel=0.05)
     assert speed(_seen(4, None, skipped=True), _seen(6, None, skipped=True)) is None
+
+
+def test_a_replays_last_frame_is_measured_from_the_frame_before_it_in_the_footage() -> None:
+    """The last frame is judged when the footage ends, with no frame after it; its speed comes from
+    the frame before it in the footage (as live), not from the frame judged before it, a hold away."""
+    from calibcoach.app.replay import _Feeder
+    from calibcoach.coverage.detector import CharucoBoardDetector
+
+    def tracked(index: int, x: float) -> Seen:
+        return Seen(Frame(index, index * FRAME_NS, np.zeros((720, 1280), np.uint8)),
+                    detection_at(CAMERA, (x, 360), 0.9), 0, 0.5)
+
+    # judged at x = 600, then a hold tracked 40 px on (639-640), then the last frame, detected in full at 640
+    stream = [_seen(0, 600), tracked(1, 639.0), tracked(2, 639.5), tracked(3, 639.5), _seen(4, 640)]
+    speeds: dict[int, float | None] = {}
+    feeder = _Feeder(CharucoBoardDetector(BoardSpec()), SessionSettings(), lambda outcome, frame: speeds.update(
+        {frame.index: outcome.motion_px_s}), locked_controls={}, focus_events=())
+    feeder.run(stream)
+    assert set(speeds) == {0, 4}
+    assert speeds[4] == pytest.approx(15.0, rel=0.1)  # 0.5 px in one frame; from frame 0: 40 px in 4 frames, 300 px/s
