@@ -84,9 +84,16 @@ CELLS: dict[str, Cell] = {
     "smooth_messy720_mjpg": Cell("webcam720", "sloppy", 1.0, "mjpg", False, 30.0, 784 / 30, smear_step_px=0.5),
     "smooth_wide1080_mjpg": Cell("wide1080", "careful", 2.0, "mjpg", False, 20.0, 26.0, smear_step_px=0.5),
     "smooth_fisheye150_png": Cell("fisheye150", "careful", 2.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
+    # the held-out judging's other containers of the 720p hands (2026-12-06): rendered with seeds
+    # 106-110 (`HELD_OUT_SEEDS`), which no run or tuning had seen when they were added
+    "smooth_careful720_mjpg": Cell("webcam720", "careful", 1.0, "mjpg", False, 30.0, 784 / 30, smear_step_px=0.5),
+    "smooth_messy720_png": Cell("webcam720", "sloppy", 1.0, "png", False, 30.0, 784 / 30, smear_step_px=0.5),
+    "smooth_dim720_png": Cell("webcam720", "careful", 2.0, "png", True, 30.0, 784 / 30, smear_step_px=0.5),
 }
 # Seeds no tuning of calibcoach has used (the unit tests, guided bench and recordings use 0-9).
 SEEDS = (101, 102, 103, 104, 105)
+# Seeds kept back for a check on footage nothing was looked at or changed against (first used 2026-12-06).
+HELD_OUT_SEEDS = (106, 107, 108, 109, 110)
 
 
 def cached_renders() -> list[tuple[str, int]]:
@@ -149,7 +156,8 @@ def render(name: str, seed: int) -> Path:
 if __name__ == "__main__":
     import sys
 
-    names = sys.argv[1:] or list(CELLS)
-    for seed in SEEDS:
+    held_out = "--held-out" in sys.argv[1:]
+    names = [a for a in sys.argv[1:] if a != "--held-out"] or list(CELLS)
+    for seed in HELD_OUT_SEEDS if held_out else SEEDS:
         for cell_name in names:
             render(cell_name, seed)
