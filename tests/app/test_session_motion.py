@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibcoach.app.replay import footage_neighbours
+from calibcoach.app.replay import _Feeder, footage_neighbours
 from calibcoach.app.scan import Seen
 from calibcoach.app.session import CalibrationSession, SessionSettings
 from calibcoach.coverage.board import BoardSpec
-from calibcoach.coverage.detector import Detection
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.exposure import velocities_across
 from calibcoach.drivers.base import Frame
 from calibcoach.drivers.lens import CameraModel
@@ -91,9 +91,6 @@ def test_a_replay_measures_a_frame_beside_a_skipped_transit_from_its_other_side(
 def test_a_replays_last_frame_is_measured_from_the_frame_before_it_in_the_footage() -> None:
     """The last frame is judged when the footage ends, with no frame after it; its speed comes from
     the frame before it in the footage (as live), not from the frame judged before it, a hold away."""
-    from calibcoach.app.replay import _Feeder
-    from calibcoach.coverage.detector import CharucoBoardDetector
-
     def tracked(index: int, x: float) -> Seen:
         return Seen(Frame(index, index * FRAME_NS, np.zeros((720, 1280), np.uint8)),
                     detection_at(CAMERA, (x, 360), 0.9), 0, 0.5)
