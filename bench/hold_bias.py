@@ -30,15 +30,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from accuracy import score, solve_plain  # noqa: E402 - bench modules beside this one
-from heldout import detect_all  # noqa: E402
-from renders import CACHE, capture_path  # noqa: E402
+from heldout import cached_capture  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.app.solve.result import View  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.detector import Detection  # noqa: E402
 from calibcoach.drivers.lens import CameraModel  # noqa: E402
-from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 HOLD_GAP_FRAMES = 3  # frames further apart than this in the final solve belong to different holds
@@ -56,18 +54,24 @@ def holds(views: list[View]) -> list[list[int]]:
     return runs
 
 
+def errors_by_corner(views: list[View], errors: list[np.ndarray], indices: list[int]) -> dict[int, list[np.ndarray]]:
+    """Corner id -> its errors in the views at `indices`."""
+    by_corner: dict[int, list[np.ndarray]] = {}
+    for i in indices:
+        for corner, error in zip(views[i].ids.reshape(-1), errors[i], strict=True):
+            by_corner.setdefault(int(corner), []).append(error)
+    return by_corner
+
+
 def shared_bias_px(views: list[View], errors: list[np.ndarray], runs: list[list[int]]) -> float:
     """RMS per axis of the error a run's frames share beyond independent noise (odd x even halves)."""
     products = []
     for run in runs:
         if len(run) < MIN_RUN:
             continue
-        halves: tuple[dict[int, list[np.ndarray]], dict[int, list[np.ndarray]]] = ({}, {})
-        for k, i in enumerate(run):
-            for corner, error in zip(views[i].ids.reshape(-1), errors[i], strict=True):
-                halves[k % 2].setdefault(int(corner), []).append(error)
-        for corner in set(halves[0]) & set(halves[1]):
-            products.append(np.mean(halves[0][corner], axis=0) * np.mean(halves[1][corner], axis=0))
+        odd, even = errors_by_corner(views, errors, run[0::2]), errors_by_corner(views, errors, run[1::2])
+        for corner in set(odd) & set(even):
+            products.append(np.mean(odd[corner], axis=0) * np.mean(even[corner], axis=0))
     return float(np.sqrt(max(float(np.mean(products)), 0.0))) if products else float("nan")
 
 
@@ -75,24 +79,17 @@ def split_by_hold(views: list[View], errors: list[np.ndarray], runs: list[list[i
     """Each view's error as (its run's per-corner mean, the rest)."""
     shared: list[np.ndarray] = [np.zeros(0)] * len(views)
     for run in runs:
-        by_corner: dict[int, list[np.ndarray]] = {}
-        for i in run:
-            for corner, error in zip(views[i].ids.reshape(-1), errors[i], strict=True):
-                by_corner.setdefault(int(corner), []).append(error)
-        means = {corner: np.mean(e, axis=0) for corner, e in by_corner.items()}
+        means = {corner: np.mean(e, axis=0) for corner, e in errors_by_corner(views, errors, run).items()}
         for i in run:
             shared[i] = np.array([means[int(c)] for c in views[i].ids.reshape(-1)])
     return shared, [e - s for e, s in zip(errors, shared, strict=True)]
 
 
 def analyse(name: str) -> str:
-    cell, seed = name.rsplit("_s", 1)
-    truth = read_truth(CACHE / name)
+    path, truth, covered = cached_capture(name)  # covered: bench/heldout.py's yardstick
     lens = truth.camera
     poses = {i: (r, t) for i, r, t in truth.poses}
-    every, _seconds = detect_all(capture_path(cell, int(seed)))
-    covered = [d.corners_px for d in every.values() if d.corner_count >= 6]  # bench/heldout.py's yardstick
-    session, _stats = run_replay(open_source(capture_path(cell, int(seed))), BoardSpec())
+    session, _stats = run_replay(open_source(path), BoardSpec())
     result = session.finish()
     views = sorted(result.calibration.views, key=lambda v: v.frame_index)
     true_px = [lens.project(v.object_points_m, *poses[v.frame_index]) for v in views]
