@@ -305,10 +305,10 @@ class CalibrationSession(SessionFinish):
         if velocities is not None:
             return float(np.median(np.linalg.norm(velocities, axis=1)))
         if before is not None and after is not None:
-            across = board_speed_px_s(before[0], before[1], after[0], after[1])
+            across = board_speed_px_s(*before, *after)
             if across is not None:
                 return across
-        speeds = [board_speed_px_s(other[0], other[1], here[0], here[1]) for other in (before, after) if other is not None]
+        speeds = [board_speed_px_s(*other, *here) for other in (before, after) if other is not None]
         known = [v for v in speeds if v is not None]
         return max(known) if known else None
 
