@@ -18,6 +18,7 @@ time is compared with the plain loop (imread + detectBoard on every frame + one 
 every usable frame), both measured in this process, one after the other.
 
     .venv/bin/python bench/heldout.py [--cells careful720_png ...] [--seeds 101 102 ...] [--no-mrcal]
+    .venv/bin/python bench/heldout.py --cached --calibcoach-only --out NAME   # the scan against --every-frame, every cached render
 
 Writes bench/results/heldout.md and bench/results/heldout.json (every run's numbers).
 """
@@ -38,7 +39,7 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
 from accuracy import score, select_ros, solve_plain  # noqa: E402  (bench/accuracy.py)
-from renders import CACHE, CELLS, SEEDS, capture_path, render  # noqa: E402
+from renders import CACHE, CELLS, SEEDS, cached_renders, capture_path, render  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
@@ -157,7 +158,9 @@ def plain_loop_seconds(path: Path, detect_s: float, usable: list[Detection], siz
     return detect_s + time.perf_counter() - start
 
 
-def evaluate(cell_name: str, seed: int, *, use_mrcal: bool) -> list[Run]:
+def evaluate(cell_name: str, seed: int, *, use_mrcal: bool, calibcoach_only: bool = False) -> list[Run]:
+    """Every method on one render; `calibcoach_only`: the defaults and `--every-frame` alone (the
+    held-frame scan against reading every frame, over many renders at ~20 s each)."""
     cell = CELLS[cell_name]
     folder = render(cell_name, seed)
     path = capture_path(cell_name, seed)
@@ -167,6 +170,11 @@ def evaluate(cell_name: str, seed: int, *, use_mrcal: bool) -> list[Run]:
     dets, detect_s = detect_all(path)
     usable = [d for _i, d in sorted(dets.items()) if d.corner_count >= 6]
     yardstick = [d.corners_px for d in usable]
+    if calibcoach_only:
+        runs = [calibcoach_run(path, camera, yardstick, every_frame=every_frame) for every_frame in (False, True)]
+        for run in runs:
+            run.cell, run.seed = cell_name, seed
+        return runs
     model = recipe_model(camera)
     runs = [solve_and_score("plain", [d for i, d in sorted(dets.items()) if i % PLAIN_EVERY == 0 and d.corner_count >= 6],
                             camera, model, yardstick),
@@ -233,8 +241,8 @@ def summary(runs: list[Run]) -> list[str]:
             if method.startswith("calibcoach"):
                 trusted = sum(r.outcome in TRUSTED for r in rs)
                 plain = {r.seed: r.error_px for r in runs if r.cell == cell and r.method == "plain"}
-                better = sum(bool(np.isfinite(r.error_px)) and not (r.error_px > plain.get(r.seed, float("nan"))) for r in rs)
-                outcome = f"{trusted}/{len(rs)} accepted, <= plain in {better}/{len(rs)}"
+                better = sum(bool(np.isfinite(r.error_px)) and not (r.error_px > plain[r.seed]) for r in rs if r.seed in plain)
+                outcome = f"{trusted}/{len(rs)} accepted" + (f", <= plain in {better}/{len(rs)}" if plain else "")
             else:
                 outcome = ", ".join(sorted({r.outcome for r in rs}))
             secs = np.array([r.seconds for r in rs])
@@ -295,6 +303,8 @@ def main() -> int:
     parser.add_argument("--cells", nargs="+", default=list(CELLS), choices=list(CELLS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--no-mrcal", action="store_true", help="leave mrcal out")
+    parser.add_argument("--cached", action="store_true", help="every render in bench/cache (any seed) instead of --cells x --seeds")
+    parser.add_argument("--calibcoach-only", action="store_true", help="only calibcoach's defaults and --every-frame")
     parser.add_argument("--out", default="heldout", help="results file stem in bench/results/")
     parser.add_argument("--merge", nargs="+", type=Path, help="only summarise these earlier .json results together")
     args = parser.parse_args()
@@ -304,13 +314,13 @@ def main() -> int:
     if args.merge:  # runs measured in several processes (cells rendered at different times)
         runs = [Run(**r) for path in args.merge for r in json.loads(path.read_text())]
         args.cells = []
-    for cell in args.cells:
-        for seed in args.seeds:
-            for run in evaluate(cell, seed, use_mrcal=not args.no_mrcal):
-                runs.append(run)
-                (results / f"{args.out}.json").write_text(json.dumps([asdict(r) for r in runs], indent=1))  # kept if a later run dies
-                print(f"{cell} s{seed} {run.method:26s} {run.error_px:8.4f} px  {run.frames:3d} frames  {run.outcome}"
-                      f"  {run.seconds:6.1f} s  {json.dumps(run.extra)}", flush=True)
+    chosen = cached_renders() if args.cached and not args.merge else [(cell, seed) for cell in args.cells for seed in args.seeds]
+    for cell, seed in chosen:
+        for run in evaluate(cell, seed, use_mrcal=not args.no_mrcal, calibcoach_only=args.calibcoach_only):
+            runs.append(run)
+            (results / f"{args.out}.json").write_text(json.dumps([asdict(r) for r in runs], indent=1))  # kept if a later run dies
+            print(f"{cell} s{seed} {run.method:26s} {run.error_px:8.4f} px  {run.frames:3d} frames  {run.outcome}"
+                  f"  {run.seconds:6.1f} s  {json.dumps(run.extra)}", flush=True)
     (results / f"{args.out}.json").write_text(json.dumps([asdict(r) for r in runs], indent=1))
     text = "\n".join(summary(runs) + paired_ratios(runs))
     (results / f"{args.out}.md").write_text(text + "\n")

@@ -94,6 +94,9 @@ CELLS: dict[str, Cell] = {
 SEEDS = (101, 102, 103, 104, 105)
 # Seeds kept back for a check on footage nothing was looked at or changed against (first used 2026-12-06).
 HELD_OUT_SEEDS = (106, 107, 108, 109, 110)
+# A second such batch, for the capture styles the first one left out (first used 2026-12-06, 09:40):
+# whether the held-frame scan's cost against `--every-frame` on the first batch was the scan or the draw.
+HELD_OUT_SEEDS_2 = (111, 112, 113)
 
 
 def cached_renders() -> list[tuple[str, int]]:
@@ -156,8 +159,10 @@ def render(name: str, seed: int) -> Path:
 if __name__ == "__main__":
     import sys
 
-    held_out = "--held-out" in sys.argv[1:]
-    names = [a for a in sys.argv[1:] if a != "--held-out"] or list(CELLS)
-    for seed in HELD_OUT_SEEDS if held_out else SEEDS:
+    # renders.py [--held-out | --held-out-2] [CELL ...]: every cell by default, the bench's seeds unless held out
+    batches = {"--held-out": HELD_OUT_SEEDS, "--held-out-2": HELD_OUT_SEEDS_2}
+    chosen = [batches[a] for a in sys.argv[1:] if a in batches]
+    names = [a for a in sys.argv[1:] if a not in batches] or list(CELLS)
+    for seed in chosen[0] if chosen else SEEDS:
         for cell_name in names:
             render(cell_name, seed)
