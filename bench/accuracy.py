@@ -27,6 +27,7 @@ Writes bench/results/accuracy.md, bench/results/efficiency_<session>.png and pri
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -99,6 +100,17 @@ def solve_plain(views: list[Detection], camera: CameraModel) -> CameraModel:
                                         camera.image_size, None, None, flags=flags)
     n = 8 if camera.model == "rational" else 5
     return CameraModel(camera.model, K, D.reshape(-1)[:n], camera.image_size)
+
+
+def crash_note(exc: Exception) -> str:
+    """A table cell for a baseline OpenCV refused: "crashed: <what it asserted> in <function>".
+
+    OpenCV's message leads with its build's source path and line, which filled the cell before the
+    assertion (a plain recipe whose frame had 10 corners in a line: `matH0.size() == Size(3, 3) in
+    initIntrinsicParams2D`, the homography it cannot fit)."""
+    text = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+    asserted = re.search(r"\(-?\d+:[^)]*\)\s*(.*?)\s+in function '([^']+)'", text)
+    return f"crashed: {asserted.group(1)} in {asserted.group(2)}" if asserted else f"crashed: {text[:60]}"
 
 
 def ros_params(d: Detection, size: tuple[int, int]) -> np.ndarray:
@@ -196,7 +208,7 @@ def evaluate(folder: Path) -> list[Method]:
             method.whole_px = whole_image_error(truth, estimate)
             method.outcome = "accepted" + (" (BAD)" if is_bad(method.error_px, method.whole_px) else "")
         except cv2.error as exc:
-            method.outcome = f"crashed: {str(exc).strip().splitlines()[-1][:60]}"
+            method.outcome = crash_note(exc)
     source = open_source(folder)
     session, _ = run_replay(source, BoardSpec.from_dict(dict(source.info.board)), SessionSettings())
     live_order = [v.frame_index for v in session.views]  # accepted while capturing, in that order

@@ -38,7 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from accuracy import score, select_ros, solve_plain  # noqa: E402  (bench/accuracy.py)
+from accuracy import crash_note, score, select_ros, solve_plain  # noqa: E402  (bench/accuracy.py)
 from renders import CACHE, CELLS, SEEDS, cached_renders, capture_path, render  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
@@ -118,7 +118,7 @@ def solve_and_score(name: str, views: list[Detection], truth: CameraModel, model
         run.error_px = score_on(truth, estimate, yardstick)
         run.outcome = "accepted"
     except cv2.error as exc:
-        run.outcome = "crashed: " + str(exc).strip().splitlines()[-1][:60]
+        run.outcome = crash_note(exc)
     return run
 
 

@@ -258,7 +258,7 @@ def rendered_views(lens_name: str, seed: int, *, frames: int, fps: float = 5.0) 
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from accuracy import score, solve_plain  # bench/accuracy.py, beside this script
+    from accuracy import crash_note, score, solve_plain  # bench/accuracy.py, beside this script
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
@@ -278,7 +278,7 @@ def main() -> int:
             try:
                 plain = f"{score(truth, solve_plain(views, truth), [d.corners_px for d in views]):.4f}"
             except Exception as exc:  # cv2.error: the plain recipe can crash; the row says so
-                plain = f"crashed: {str(exc).strip().splitlines()[-1][:50]}"
+                plain = crash_note(exc)
             with tempfile.TemporaryDirectory() as tmp:
                 sol = solve_with_mrcal(views, BoardSpec(), truth.image_size, LENS_KIND[lens_name], Path(tmp))
                 commands.append(f"- {lens_name}: `" + sol.command_line.replace(tmp, "WORKDIR") + "`")
