@@ -94,7 +94,7 @@ CELLS: dict[str, Cell] = {
 SEEDS = (101, 102, 103, 104, 105)
 # Seeds kept back for a check on footage nothing was looked at or changed against (first used 2026-12-06).
 HELD_OUT_SEEDS = (106, 107, 108, 109, 110)
-# A second such batch, for the capture styles the first one left out (first used 2026-12-06, 09:40):
+# A second such batch, for the capture styles the first one left out (first used 2026-12-06, 09:10):
 # whether the held-frame scan's cost against `--every-frame` on the first batch was the scan or the draw.
 HELD_OUT_SEEDS_2 = (111, 112, 113)
 
