@@ -117,7 +117,7 @@ class CalibrationSession(SessionFinish):
         self._error_weight: np.ndarray | None = None  # (P, P) W: E^2 = sigma^2 trace(W S^-1) over the covered region
         self.noise_px: float | None = None  # corner noise per coordinate from the latest incremental solve
         self.frames_seen = 0
-        self._previous: tuple[Detection, int] | tuple[None, None] = (None, None)
+        self._previous: tuple[Detection, int] | None = None  # (detection, timestamp_ns) of the frame processed last
         # frame index -> (before, after): its neighbours in the footage, where a replay saw them (`note_neighbours`)
         self._neighbours: dict[int, tuple[tuple[Detection, int] | None, tuple[Detection, int] | None]] = {}
         self._check_image: tuple[int, Frame] | None = None
@@ -223,13 +223,12 @@ class CalibrationSession(SessionFinish):
         if len(self._samples) < _SAMPLE_FRAMES_FOR_DIAGNOSIS and detection.corner_count == 0 and self.frames_seen % 5 == 1:
             self._samples.append(frame.grey())
         here = (detection, frame.timestamp_ns)
-        before, after = self._neighbours.pop(frame.index, (None if self._previous[0] is None else self._previous, following))
+        before, after = self._neighbours.pop(frame.index, (self._previous, following))
         velocities = velocities_across(here, before, after)
         motion = self._motion_px_s(here, before, after, velocities)
         self.smear.saw(frame.index, frame.timestamp_ns)
-        previous = self._previous[0]
-        just_appeared = self.settings.use_motion_gate and previous is not None and previous.corner_count < 4
-        self._previous = (detection, frame.timestamp_ns)
+        just_appeared = self.settings.use_motion_gate and self._previous is not None and self._previous[0].corner_count < 4
+        self._previous = here
         pose = self._pose(detection) if detection.corner_count >= self.settings.selector.min_corners else None
         gated = self.selector.gate(detection)
         if gated is None and in_transit:
