@@ -170,25 +170,22 @@ def evaluate(cell_name: str, seed: int, *, use_mrcal: bool, calibcoach_only: boo
     dets, detect_s = detect_all(path)
     usable = [d for _i, d in sorted(dets.items()) if d.corner_count >= 6]
     yardstick = [d.corners_px for d in usable]
-    if calibcoach_only:
-        runs = [calibcoach_run(path, camera, yardstick, every_frame=every_frame) for every_frame in (False, True)]
-        for run in runs:
-            run.cell, run.seed = cell_name, seed
-        return runs
-    model = recipe_model(camera)
-    runs = [solve_and_score("plain", [d for i, d in sorted(dets.items()) if i % PLAIN_EVERY == 0 and d.corner_count >= 6],
-                            camera, model, yardstick),
-            solve_and_score("ROS-style", select_ros([d for _i, d in sorted(dets.items())], camera.image_size),
-                            camera, model, yardstick)]
     # exposure_s.txt holds the exposure drawn for the render; the simulator doubles it in low light, up to 1 / fps
     exposure_s = effective_exposure_s(float((folder / "exposure_s.txt").read_text()), low_light=cell.low_light, fps=cell.fps)
     smear = exposure_smear_px(truth, exposure_s, cell.fps, spec)
     still = [(f"{i:06d}", d) for i, d in sorted(dets.items()) if d.corner_count >= 6 and smear.get(i, 9.0) < STILL_SMEAR_PX]
-    if use_mrcal:  # at most MRCAL_FRAMES of them, evenly spread (mrcal's solve grows with the views)
-        runs.append(mrcal_run(still[:: max(1, -(-len(still) // MRCAL_FRAMES))], spec, camera, model, yardstick, folder))
+    runs: list[Run] = []
+    if not calibcoach_only:  # the other methods, on the same detections
+        model = recipe_model(camera)
+        runs += [solve_and_score("plain", [d for i, d in sorted(dets.items()) if i % PLAIN_EVERY == 0 and d.corner_count >= 6],
+                                 camera, model, yardstick),
+                 solve_and_score("ROS-style", select_ros([d for _i, d in sorted(dets.items())], camera.image_size),
+                                 camera, model, yardstick)]
+        if use_mrcal:  # at most MRCAL_FRAMES of them, evenly spread (mrcal's solve grows with the views)
+            runs.append(mrcal_run(still[:: max(1, -(-len(still) // MRCAL_FRAMES))], spec, camera, model, yardstick, folder))
     for every_frame in (False, True):
         runs.append(calibcoach_run(path, camera, yardstick, every_frame=every_frame))
-    if cell.container == "png":
+    if cell.container == "png" and not calibcoach_only:
         plain_s = plain_loop_seconds(path, detect_s, usable, camera.image_size)
         for run in runs:
             if run.method.startswith("calibcoach"):
