@@ -31,6 +31,7 @@ from calibcoach.app.solve.verdict import error_target_px, judge, smeared_capture
 from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
 from calibcoach.coverage.candidates import ranges_for
 from calibcoach.coverage.corner_refine import refine_on_checker_edges
+from calibcoach.coverage.corner_symmetry import refine_by_symmetry
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
 from calibcoach.coverage.pose import estimate_pose, estimate_poses
@@ -82,8 +83,13 @@ def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: 
         blur = edges.blur_px if edges is not None else blur_px
         if blur is None:
             blur = edge_blur(grey, corners, detection.object_points_m).blur_px
+        blur = blur if np.isfinite(blur) else None
         refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
-                                          board.marker_mm / 1000.0, blur_sigma_px=blur if np.isfinite(blur) else None)
+                                          board.marker_mm / 1000.0, blur_sigma_px=blur)
+        # then every corner with a local map fitted to the pattern's point symmetry, from there
+        # (coverage/corner_symmetry.py): the masked window leaves corners of small or soft squares
+        # as OpenCV gave them, the symmetry needs no room between the markers and the checker's edges
+        refined = refine_by_symmetry(grey, refined, detection.object_points_m, board, blur_sigma_px=blur)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
                 timestamp_ns=int(frame.timestamp_ns), refined_px=refined)
 

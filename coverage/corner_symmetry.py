@@ -1,0 +1,263 @@
+"""ChArUco corners refined by the checker pattern's point symmetry about each corner.
+
+Around a checker corner the board is the same turned half a turn: a point half a square up and
+right of it has the colour of the point as far down and left. So the corner is where the image
+agrees with itself reflected through it: for sample pairs at board offsets +p and -p, mapped into
+the image by the corner's local board-to-image map, the corner c minimises
+sum (I(c + d(+p)) - I(c + d(-p)))^2 (the image interpolated bilinearly). Every pixel of the window
+takes part with the weight its own contrast gives it, and blur, being the same both ways round,
+keeps the symmetry; the estimator is the one the accurate-calibration literature uses for
+checkerboards (Schops et al., "Why having 10,000 parameters in your camera model is better than
+twelve", CVPR 2020), there with the whole local homography free, here with the map's shape taken
+from the corner's detected grid neighbours and only its position fitted.
+
+It runs after the masked refinement (coverage/corner_refine.py), from its corners, on the corners
+that refinement refined: the same local map (a quadratic through the 3 x 3 grid neighbours, which
+follows the lens's curvature over a square), a window of half a square (at most
+`corner_refine.MAX_HALF_WINDOW_PX`), and the markers' span kept out, less the same blur margin
+(the markers are not symmetric; a pair is taken only where both its points lie in a marker-free
+square or in the marker-free border of a white one). Against the truth, on still frames of 720p
+renders, the corners' error per axis went 0.029 -> 0.020 px (careful), 0.083-0.097 -> 0.060-0.079
+(dim), with a smaller per-view pattern too (bench/results/corner_symmetry.md).
+
+The fit is in C where it was built (coverage/_corner_symmetry.c, ~1 ms a 720p frame), else NumPy
+(the same numbers to ~1e-12 px, several times slower).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.corner_refine import (
+    _GENERAL_POSITION,
+    _NEIGHBOURS,
+    BLUR_MARGIN_SIGMAS,
+    MAX_HALF_WINDOW_PX,
+    MIN_BLUR_MARGIN_PX,
+    QUADRATIC_RIDGE,
+)
+
+try:  # built by `pip install` where a C compiler is present (pyproject ext-modules, optional)
+    from calibcoach.coverage._corner_symmetry import fit as _fit_in_c
+except ImportError:  # pragma: no cover - no compiler at install: the NumPy path, the same numbers
+    _fit_in_c = None
+
+# Pairs sampled a pixel apart in the image (at the corner's scale): the pixels are the information;
+# half a pixel apart gave the same corners (careful and dim renders) at four times the cost.
+SAMPLE_STEP_PX = 1.0
+MIN_PAIRS = 24  # fewer clean pairs (a far board, a corner at the image's edge): left as it was
+MAX_ITERATIONS = 10
+CONVERGED_PX = 1e-3
+# A corner fitted further than this from where the masked refinement put it is a failure of the map
+# or the symmetry (a corner half off the image, a reflection), not a correction: left as it was.
+MAX_SHIFT_PX = 0.5
+
+# Sample grid in steps: (i + 0.5, j + 0.5), j >= 0 (the upper half-plane; each sample's partner is
+# its reflection), within the largest window
+_RADIUS_STEPS = int(np.ceil(MAX_HALF_WINDOW_PX / SAMPLE_STEP_PX))
+_I, _J = np.meshgrid(np.arange(-_RADIUS_STEPS, _RADIUS_STEPS) + 0.5, np.arange(0, _RADIUS_STEPS) + 0.5)
+_TEMPLATE = np.stack([_I.ravel(), _J.ravel()], axis=1)
+_TEMPLATE = _TEMPLATE[np.hypot(_TEMPLATE[:, 0], _TEMPLATE[:, 1]) <= _RADIUS_STEPS]  # (P, 2), P = 308
+_TEMPLATE_RADIUS = np.hypot(_TEMPLATE[:, 0], _TEMPLATE[:, 1])
+
+
+@lru_cache(maxsize=16)
+def marker_free_squares(spec: BoardSpec) -> np.ndarray:
+    """(squares_x, squares_y) bool: which squares of the board hold no marker (the settled pattern's)."""
+    board = spec.cv_board(legacy=bool(spec.legacy))
+    square_m = spec.square_mm / 1000.0
+    free = np.ones((spec.squares_x, spec.squares_y), bool)
+    for corners in board.getObjPoints():
+        centre = np.asarray(corners, np.float64).reshape(-1, 3)[:, :2].mean(axis=0)
+        x, y = np.floor(centre / square_m).astype(int)
+        free[x, y] = False
+    return free
+
+
+def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m: np.ndarray, spec: BoardSpec,
+                       *, blur_sigma_px: float | None = None, only: np.ndarray | None = None) -> np.ndarray:
+    """(N, 2) float64 corners fitted to the pattern's point symmetry, from (N, 2) starts.
+
+    `object_points_m`: (N, 2 or 3) the same corners on the board; `blur_sigma_px`: the frame's edge
+    blur, which widens the margin kept clear of the markers; `only`: (N,) bool, the corners to fit
+    (the rest, and corners without a local map, enough clean pairs or a converged fit, keep their
+    position).
+    """
+    corners = np.asarray(corners_px, np.float64).reshape(-1, 2)
+    out = corners.copy()
+    n = len(corners)
+    if n < 4 or grey.ndim != 2:
+        return out
+    square_m = spec.square_mm / 1000.0
+    grid = np.rint(np.asarray(object_points_m, np.float64).reshape(n, -1)[:, :2] / square_m).astype(np.int64)
+    homography, correction, valid = _board_to_image_maps(corners, grid)
+    if homography is None:
+        return out
+    if only is not None:
+        valid &= np.asarray(only, bool)
+    index = np.flatnonzero(valid)
+    if index.size == 0:
+        return out
+    dp, dm, weights = _pairs(homography, correction[index], grid[index], spec, blur_sigma_px)
+    enough = weights.sum(axis=1) >= MIN_PAIRS
+    index, dp, dm, weights = index[enough], dp[enough], dm[enough], weights[enough]
+    if index.size == 0:
+        return out
+    fitted, iterations = _fit(grey, corners[index], dp, dm, weights)
+    keep = (iterations > 0) & (np.linalg.norm(fitted - corners[index], axis=1) < MAX_SHIFT_PX)
+    out[index[keep]] = fitted[keep]
+    return out
+
+
+def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """Each corner's board-to-image map: the frame's homography (all its corners, least squares),
+    corrected by a quadratic fitted to its detected 8-neighbours' departures from it.
+
+    The symmetry is exact only with the map's curvature in: a tilted board's perspective bends a
+    square's image by ~2 px per square^2 (a 45 deg tilt at 0.5 m, 720p), and a map without it puts
+    each pair's two samples off the same way, a shift of the pattern by ~0.1 px. The homography
+    carries the perspective; the neighbours' quadratic adds the lens's bending where they determine
+    it (a small ridge holds it at zero along a border row, where the homography's alone is taken).
+
+    Returns the homography (None when it cannot be fitted), the (N, 2, 5) correction's x, y, x^2,
+    xy, y^2 terms per image axis, and (N,) whether the neighbours are in general position.
+    """
+    n = len(corners)
+    if n < 6:
+        return None, np.zeros((n, 2, 5)), np.zeros(n, bool)
+    board = grid.astype(np.float64)
+    homography, _ = cv2.findHomography(board, corners, 0)
+    if homography is None or not np.isfinite(homography).all():
+        return None, np.zeros((n, 2, 5)), np.zeros(n, bool)
+    lo = grid.min(axis=0) - 1
+    shape = grid.max(axis=0) - lo + 2
+    lookup = np.full((shape[0], shape[1]), -1, np.int64)
+    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(n)
+    cells = grid[:, None, :] - lo + _NEIGHBOURS[None]
+    members = lookup[cells[..., 0], cells[..., 1]]
+    present = members >= 0
+    predicted = _offsets_under(homography, board, _NEIGHBOURS.astype(np.float64)[None])  # (N, 9, 2)
+    seen = np.where(present[..., None], corners[np.maximum(members, 0)] - corners[:, None, :], 0.0)
+    departures = np.where(present[..., None], seen - predicted, 0.0)
+    u, v = (_NEIGHBOURS[:, 0].astype(np.float64), _NEIGHBOURS[:, 1].astype(np.float64))
+    design = np.stack([np.ones(9), u, v, u * u, u * v, v * v], axis=1)[None] * present[..., None]  # (N, 9, 6)
+    ridge = np.diag([0.0, 0.0, 0.0, QUADRATIC_RIDGE, QUADRATIC_RIDGE, QUADRATIC_RIDGE])
+    normal = design.transpose(0, 2, 1) @ design + ridge + 1e-12 * np.eye(6)
+    coef = np.linalg.solve(normal, design.transpose(0, 2, 1) @ departures)  # (N, 6, 2)
+    correction = coef[:, 1:6, :].transpose(0, 2, 1)  # (N, 2, 5): the constant is the corner's own offset, dropped
+    pattern = (present * (1 << np.arange(9))).sum(axis=1)
+    valid = _GENERAL_POSITION[pattern] & np.isfinite(coef).all(axis=(1, 2))
+    return homography, correction, valid
+
+
+def _offsets_under(homography: np.ndarray, board: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(M, P, 2) image offsets H(g + p) - H(g) of board offsets `offsets` (M or 1, P, 2) from each corner's `board` (M, 2)."""
+    (h00, h01, h02), (h10, h11, h12), (h20, h21, h22) = homography
+    gx, gy = board[:, 0:1], board[:, 1:2]
+    ax, ay = gx + offsets[..., 0], gy + offsets[..., 1]  # (M, P), written out: matmul over a 2-vector is slower
+    w, w0 = h20 * ax + h21 * ay + h22, h20 * gx + h21 * gy + h22
+    out = np.empty(ax.shape + (2,))
+    out[..., 0] = (h00 * ax + h01 * ay + h02) / w - (h00 * gx + h01 * gy + h02) / w0
+    out[..., 1] = (h10 * ax + h11 * ay + h12) / w - (h10 * gx + h11 * gy + h12) / w0
+    return out
+
+
+def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray, spec: BoardSpec,
+           blur_sigma_px: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each corner's sample pairs: image offsets (M, P, 2) of +p and of -p, and (M, P) weights (1 or 0).
+
+    p runs over `_TEMPLATE` scaled to a pixel apart at the corner's scale, within half a square and
+    `MAX_HALF_WINDOW_PX`; a pair counts where p lies in a marker-free square (then -p does too: the
+    squares opposite each other at a corner are alike) or within the marker-free border of its square
+    less the blur margin (`corner_refine`'s).
+    """
+    board = grid.astype(np.float64)
+    axes = _offsets_under(homography, board, np.array([[[1e-3, 0.0], [0.0, 1e-3]]])) / 1e-3  # (M, 2 board axes, 2)
+    px_per_square = np.sqrt(np.abs(axes[:, 0, 0] * axes[:, 1, 1] - axes[:, 0, 1] * axes[:, 1, 0]))  # (M,)
+    step = SAMPLE_STEP_PX / px_per_square
+    half = np.minimum(0.5, MAX_HALF_WINDOW_PX / px_per_square)
+    u = _TEMPLATE[None, :, 0] * step[:, None]  # (M, P) board offsets in squares
+    v = _TEMPLATE[None, :, 1] * step[:, None]
+    margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
+    border = (spec.square_mm - spec.marker_mm) / 2.0 / spec.square_mm - margin_px / px_per_square  # (M,)
+    # the square p lies in: the corner at grid (i, j) sits between squares i - 1 and i, j - 1 and j;
+    # v > 0 always (the template's half-plane), so p's square is (i - [u < 0], j), -p's the one opposite
+    free = marker_free_squares(spec)
+    right = free[np.clip(grid[:, 0], 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]  # (M,) square (i, j)
+    left = free[np.clip(grid[:, 0] - 1, 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]  # (i - 1, j)
+    marker_free = np.where(_TEMPLATE[None, :, 0] < 0, left[:, None], right[:, None])
+    in_border = np.minimum(np.abs(u), v) <= border[:, None]
+    within = _TEMPLATE_RADIUS[None] * step[:, None] <= half[:, None]
+    weights = (within & (marker_free | in_border)).astype(np.float64)
+    p = np.stack([u, v], axis=2)
+    plus = _offsets_under(homography, board, p)
+    minus = _offsets_under(homography, board, -p)
+    uu, uv, vv = u * u, u * v, v * v  # even in p: the same for -p
+    for axis in (0, 1):
+        c = correction[:, axis]
+        bent = c[:, 2:3] * uu + c[:, 3:4] * uv + c[:, 4:5] * vv
+        straight = c[:, 0:1] * u + c[:, 1:2] * v
+        plus[..., axis] += straight + bent
+        minus[..., axis] += bent - straight
+    return np.ascontiguousarray(plus), np.ascontiguousarray(minus), weights
+
+
+def _fit(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.ndarray,
+         weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on each corner's symmetry cost: (M, 2) corners and (M,) steps taken (-1: no fit)."""
+    if _fit_in_c is not None and grey.dtype == np.uint8:
+        image = np.ascontiguousarray(grey)
+        out = np.empty_like(starts)
+        iterations = np.empty(len(starts), np.int32)
+        _fit_in_c(image, image.shape[0], image.shape[1], len(starts), dp.shape[1], np.ascontiguousarray(starts),
+                  dp, dm, np.ascontiguousarray(weights), MAX_ITERATIONS, CONVERGED_PX, out, iterations)
+        return out, iterations
+    return _fit_in_numpy(grey, starts, dp, dm, weights)
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Value, d/dx, d/dy of the bilinear interpolation of `image` at (x, y), and where the cell is inside."""
+    height, width = image.shape
+    fx0, fy0 = np.floor(x), np.floor(y)
+    inside = (fx0 >= 0) & (fy0 >= 0) & (fx0 < width - 1) & (fy0 < height - 1)
+    x0 = np.where(inside, fx0, 0).astype(np.int64)
+    y0 = np.where(inside, fy0, 0).astype(np.int64)
+    fx, fy = x - fx0, y - fy0
+    a, b = image[y0, x0], image[y0, x0 + 1]
+    c, d = image[y0 + 1, x0], image[y0 + 1, x0 + 1]
+    value = ((a * (1.0 - fx)) * (1.0 - fy) + (b * fx) * (1.0 - fy)) + ((c * (1.0 - fx)) * fy + (d * fx) * fy)
+    return value, (1.0 - fy) * (b - a) + fy * (d - c), (1.0 - fx) * (c - a) + fx * (d - b), inside
+
+
+def _fit_in_numpy(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.ndarray,
+                  weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_corner_symmetry.fit` in NumPy: every corner steps together, each until its own step is small."""
+    image = np.asarray(grey, np.float64)
+    corners = starts.copy()
+    iterations = np.full(len(starts), -1, np.int32)
+    active = np.ones(len(starts), bool)
+    for it in range(1, MAX_ITERATIONS + 1):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        c = corners[idx][:, None, :]
+        vp, gxp, gyp, ip = _bilinear(image, c[..., 0] + dp[idx, :, 0], c[..., 1] + dp[idx, :, 1])
+        vm, gxm, gym, im = _bilinear(image, c[..., 0] + dm[idx, :, 0], c[..., 1] + dm[idx, :, 1])
+        w = np.where(ip & im, weights[idx], 0.0)
+        r, jx, jy = vp - vm, gxp - gxm, gyp - gym
+        wjx, wjy = w * jx, w * jy
+        sxx, sxy, syy = (wjx * jx).sum(axis=1), (wjx * jy).sum(axis=1), (wjy * jy).sum(axis=1)
+        sxr, syr = (wjx * r).sum(axis=1), (wjy * r).sum(axis=1)
+        det = sxx * syy - sxy * sxy
+        solvable = det > 1e-12 * (sxx + syy) * (sxx + syy)
+        safe = np.where(solvable, det, 1.0)
+        step = np.stack([-(syy * sxr - sxy * syr) / safe, -(sxx * syr - sxy * sxr) / safe], axis=1)
+        corners[idx[solvable]] += step[solvable]
+        converged = solvable & (np.hypot(step[:, 0], step[:, 1]) < CONVERGED_PX)
+        iterations[idx[converged]] = it
+        active[idx[converged | ~solvable]] = False
+    return corners, iterations
