@@ -300,7 +300,8 @@ def main() -> int:
     parser.add_argument("--cells", nargs="+", default=list(CELLS), choices=list(CELLS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--no-mrcal", action="store_true", help="leave mrcal out")
-    parser.add_argument("--cached", action="store_true", help="every render in bench/cache (any seed) instead of --cells x --seeds")
+    parser.add_argument("--cached", action="store_true",
+                        help="every render in bench/cache (any seed) of --cells (default: every cell) instead of --cells x --seeds")
     parser.add_argument("--calibcoach-only", action="store_true", help="only calibcoach's defaults and --every-frame")
     parser.add_argument("--out", default="heldout", help="results file stem in bench/results/")
     parser.add_argument("--merge", nargs="+", type=Path, help="only summarise these earlier .json results together")
@@ -311,7 +312,8 @@ def main() -> int:
     if args.merge:  # runs measured in several processes (cells rendered at different times)
         runs = [Run(**r) for path in args.merge for r in json.loads(path.read_text())]
         args.cells = []
-    chosen = cached_renders() if args.cached and not args.merge else [(cell, seed) for cell in args.cells for seed in args.seeds]
+    chosen = ([(cell, seed) for cell, seed in cached_renders() if cell in args.cells] if args.cached and not args.merge
+              else [(cell, seed) for cell in args.cells for seed in args.seeds])
     for cell, seed in chosen:
         for run in evaluate(cell, seed, use_mrcal=not args.no_mrcal, calibcoach_only=args.calibcoach_only):
             runs.append(run)
