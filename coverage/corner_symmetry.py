@@ -1,24 +1,24 @@
 """ChArUco corners refined by the checker pattern's point symmetry about each corner.
 
-Around a checker corner the board is the same turned half a turn: a point half a square up and
-right of it has the colour of the point as far down and left. So the corner is where the image
-agrees with itself reflected through it: for sample pairs at board offsets +p and -p, mapped into
-the image by the corner's local board-to-image map, the corner c minimises
-sum (I(c + d(+p)) - I(c + d(-p)))^2 (the image interpolated bilinearly). Every pixel of the window
-takes part with the weight its own contrast gives it, and blur, being the same both ways round,
-keeps the symmetry; the estimator is the one the accurate-calibration literature uses for
+Within half a square a checker corner is two straight edges crossing (a homography keeps lines
+straight), and the image turned half a turn about the crossing is the same image: a point up and
+right of it has the grey of the point as far down and left, blur included. So the corner is
+where the image agrees with itself reflected through it: for sample offsets d about a pixel
+apart over the window, the corner c minimises sum (I(c + d) - I(c - d))^2 (the image interpolated
+bilinearly), by Gauss-Newton on c alone. Every pixel of the window counts by the contrast it
+carries, and the estimator needs no room between the markers and the checker's edges, which the
+masked refinement does. It is the estimator the accurate-calibration literature uses for
 checkerboards (Schops et al., "Why having 10,000 parameters in your camera model is better than
-twelve", CVPR 2020), there with the whole local homography free, here with the map's shape taken
-from the corner's detected grid neighbours and only its position fitted.
+twelve", CVPR 2020, there over a pattern symmetric on the board with its homography fitted too).
 
-It runs after the masked refinement (coverage/corner_refine.py), from its corners, on the corners
-that refinement refined: the same local map (a quadratic through the 3 x 3 grid neighbours, which
-follows the lens's curvature over a square), a window of half a square (at most
-`corner_refine.MAX_HALF_WINDOW_PX`), and the markers' span kept out, less the same blur margin
-(the markers are not symmetric; a pair is taken only where both its points lie in a marker-free
-square or in the marker-free border of a white one). Against the truth, on still frames of 720p
-renders, the corners' error per axis went 0.029 -> 0.020 px (careful), 0.083-0.097 -> 0.060-0.079
-(dim), with a smaller per-view pattern too (bench/results/corner_symmetry.md).
+The offsets d come from board offsets through the corner's board-to-image map (the frame's
+homography, bent by a quadratic through its grid neighbours), which also says which samples lie
+in a marker's span (not symmetric: left out, with the masked refinement's blur margin) and sets
+the window: half a square, at most `corner_refine.MAX_HALF_WINDOW_PX`. It runs after the masked
+refinement (coverage/corner_refine.py), from its corners, on every corner with neighbours in
+general position. Against the truth, on still frames of 720p renders, the corners' error per
+axis went 0.028 -> 0.018 px (careful) and 0.089-0.097 -> 0.058-0.068 (dim); the replays' error
+over 63 renders halved (bench/results/corner_symmetry.md).
 
 The fit is in C where it was built (coverage/_corner_symmetry.c, ~1 ms a 720p frame), else NumPy
 (the same numbers to ~1e-12 px, several times slower).
@@ -57,7 +57,7 @@ CONVERGED_PX = 1e-3
 MAX_SHIFT_PX = 0.5
 
 # Sample grid in steps: (i + 0.5, j + 0.5), j >= 0 (the upper half-plane; each sample's partner is
-# its reflection), within the largest window
+# its reflection through the corner), within the largest window
 _RADIUS_STEPS = int(np.ceil(MAX_HALF_WINDOW_PX / SAMPLE_STEP_PX))
 _I, _J = np.meshgrid(np.arange(-_RADIUS_STEPS, _RADIUS_STEPS) + 0.5, np.arange(0, _RADIUS_STEPS) + 0.5)
 _TEMPLATE = np.stack([_I.ravel(), _J.ravel()], axis=1)
@@ -117,11 +117,11 @@ def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndar
     """Each corner's board-to-image map: the frame's homography (all its corners, least squares),
     corrected by a quadratic fitted to its detected 8-neighbours' departures from it.
 
-    The symmetry is exact only with the map's curvature in: a tilted board's perspective bends a
-    square's image by ~2 px per square^2 (a 45 deg tilt at 0.5 m, 720p), and a map without it puts
-    each pair's two samples off the same way, a shift of the pattern by ~0.1 px. The homography
-    carries the perspective; the neighbours' quadratic adds the lens's bending where they determine
-    it (a small ridge holds it at zero along a border row, where the homography's alone is taken).
+    The map places the samples and their masks (which squares hold markers, how far the border
+    reaches): a tilted board's perspective bends a square's image by ~2 px per square^2 (a 45 deg
+    tilt at 0.5 m, 720p). The homography carries the perspective; the neighbours' quadratic adds
+    the lens's bending where they determine it (a small ridge holds it at zero along a border row,
+    where the homography's alone is taken).
 
     Returns the homography (None when it cannot be fitted), the (N, 2, 5) correction's x, y, x^2,
     xy, y^2 terms per image axis, and (N,) whether the neighbours are in general position.
@@ -168,12 +168,22 @@ def _offsets_under(homography: np.ndarray, board: np.ndarray, offsets: np.ndarra
 
 def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray, spec: BoardSpec,
            blur_sigma_px: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each corner's sample pairs: image offsets (M, P, 2) of +p and of -p, and (M, P) weights (1 or 0).
+    """Each corner's sample pairs: image offsets (M, P, 2) d of board offsets p and their reflections
+    -d through the corner, and (M, P) weights (1 or 0).
 
     p runs over `_TEMPLATE` scaled to a pixel apart at the corner's scale, within half a square and
-    `MAX_HALF_WINDOW_PX`; a pair counts where p lies in a marker-free square (then -p does too: the
-    squares opposite each other at a corner are alike) or within the marker-free border of its square
-    less the blur margin (`corner_refine`'s).
+    `MAX_HALF_WINDOW_PX`; a pair counts where p lies in a marker-free square (then the reflection
+    does too: the squares opposite each other at a corner are alike) or within the marker-free
+    border of its square less the blur margin (`corner_refine`'s; the reflection lands within a
+    fiftieth of a square of -p on the board, well inside that margin).
+
+    The partner is the reflection in the image, not the image of -p: within half a square the
+    corner is two straight lines crossing (a homography keeps lines straight), which the image's
+    own half-turn maps onto themselves whatever the perspective, and so does the blur. The image
+    of -p lies nearer to or further from the edges than d by the perspective's change of scale
+    across the window (a few percent at a steep tilt), and within the blur that changes its grey:
+    pairs of images of +p and -p gave 1.17x the error against the truth over the 63 renders of
+    bench/results/corner_symmetry.md (35 of 63 worse).
     """
     board = grid.astype(np.float64)
     axes = _offsets_under(homography, board, np.array([[[1e-3, 0.0], [0.0, 1e-3]]])) / 1e-3  # (M, 2 board axes, 2)
@@ -193,17 +203,11 @@ def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray, spe
     in_border = np.minimum(np.abs(u), v) <= border[:, None]
     within = _TEMPLATE_RADIUS[None] * step[:, None] <= half[:, None]
     weights = (within & (marker_free | in_border)).astype(np.float64)
-    p = np.stack([u, v], axis=2)
-    plus = _offsets_under(homography, board, p)
-    minus = _offsets_under(homography, board, -p)
-    uu, uv, vv = u * u, u * v, v * v  # even in p: the same for -p
+    plus = _offsets_under(homography, board, np.stack([u, v], axis=2))
     for axis in (0, 1):
         c = correction[:, axis]
-        bent = c[:, 2:3] * uu + c[:, 3:4] * uv + c[:, 4:5] * vv
-        straight = c[:, 0:1] * u + c[:, 1:2] * v
-        plus[..., axis] += straight + bent
-        minus[..., axis] += bent - straight
-    return np.ascontiguousarray(plus), np.ascontiguousarray(minus), weights
+        plus[..., axis] += c[:, 0:1] * u + c[:, 1:2] * v + c[:, 2:3] * u * u + c[:, 3:4] * u * v + c[:, 4:5] * v * v
+    return plus, -plus, weights
 
 
 def _fit(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.ndarray,
