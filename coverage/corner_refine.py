@@ -61,7 +61,7 @@ MAX_SHIFT_PX = 0.5
 # Ridge on the local map's quadratic terms (offsets normalised to ~1 neighbour spacing): far below
 # what nine points determine, enough to hold them at zero where the neighbours lie on two lines.
 QUADRATIC_RIDGE = 1e-3
-_NEIGHBOURS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.int64)  # (9, 2), (0, 0) at 4
+NEIGHBOUR_OFFSETS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], np.int64)  # (9, 2), (0, 0) at 4
 
 
 def _general_position_table() -> np.ndarray:
@@ -71,7 +71,7 @@ def _general_position_table() -> np.ndarray:
     has four points three of which lie on a line (the border and one more); a local map fitted to
     them folds the window (corners moved 0.4 px off on renders), so such corners are left alone.
     """
-    at = _NEIGHBOURS.tolist()
+    at = NEIGHBOUR_OFFSETS.tolist()
 
     def on_a_line(a: int, b: int, c: int) -> bool:
         (xa, ya), (xb, yb), (xc, yc) = at[a], at[b], at[c]
@@ -129,6 +129,22 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     return out
 
 
+def grid_neighbours(grid: np.ndarray) -> np.ndarray:
+    """(N, 9) int64: the index of each corner's 3 x 3 grid neighbours (in `NEIGHBOUR_OFFSETS`' order, the
+    corner itself at 4) among the (N, 2) `grid` positions, -1 where that neighbour was not detected."""
+    lo = grid.min(axis=0) - 1
+    shape = grid.max(axis=0) - lo + 2
+    lookup = np.full((shape[0], shape[1]), -1, np.int64)
+    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(len(grid))
+    cells = grid[:, None, :] - lo + NEIGHBOUR_OFFSETS[None]
+    return lookup[cells[..., 0], cells[..., 1]]
+
+
+def in_general_position(present: np.ndarray) -> np.ndarray:
+    """(N,) bool from (N, 9) which neighbours are present: whether four of them have no three on a line."""
+    return _GENERAL_POSITION[(present * (1 << np.arange(9))).sum(axis=1)]
+
+
 def _local_quadratic_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Image offset (px from the corner, over `scale`) -> board offset (squares), a quadratic per corner.
 
@@ -137,27 +153,20 @@ def _local_quadratic_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.nda
     detected 8-neighbours; a small ridge on the quadratic terms leaves them at zero where the
     neighbours do not determine them (a border row), so the map falls back to affine there.
     """
-    n = len(corners)
-    lo = grid.min(axis=0) - 1
-    shape = grid.max(axis=0) - lo + 2
-    lookup = np.full((shape[0], shape[1]), -1, np.int64)
-    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(n)
-    cells = grid[:, None, :] - lo + _NEIGHBOURS[None]
-    members = lookup[cells[..., 0], cells[..., 1]]
+    members = grid_neighbours(grid)
     present = members >= 0
     xy = np.where(present[..., None], corners[np.maximum(members, 0)] - corners[:, None, :], 0.0)
     scale = np.maximum(np.sqrt((xy ** 2).sum(axis=2).sum(axis=1) / np.maximum(present.sum(axis=1) - 1, 1)), 1e-6)
     x, y = xy[..., 0] / scale[:, None], xy[..., 1] / scale[:, None]
     A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=2) * present[..., None]  # (N, 9, 6)
-    b = _NEIGHBOURS[None].astype(np.float64) * present[..., None]  # (N, 9, 2)
+    b = NEIGHBOUR_OFFSETS[None].astype(np.float64) * present[..., None]  # (N, 9, 2)
     ridge = np.diag([0.0, 0.0, 0.0, QUADRATIC_RIDGE, QUADRATIC_RIDGE, QUADRATIC_RIDGE])
     coef = np.linalg.solve(A.transpose(0, 2, 1) @ A + ridge + 1e-12 * np.eye(6), A.transpose(0, 2, 1) @ b)  # (N, 6, 2)
     coef = coef.transpose(0, 2, 1)  # (N, 2, 6)
     # d(u, v)/d(x, y) at the corner, in px: its inverse's columns are the image steps of one square along u and v
     jac = coef[:, :, 1:3] / scale[:, None, None]
     det = np.linalg.det(jac)
-    pattern = (present * (1 << np.arange(9))).sum(axis=1)
-    valid = _GENERAL_POSITION[pattern] & (np.abs(det) > 1e-12) & np.isfinite(coef).all(axis=(1, 2))
+    valid = in_general_position(present) & (np.abs(det) > 1e-12) & np.isfinite(coef).all(axis=(1, 2))
     steps = np.linalg.inv(np.where(valid[:, None, None], jac, np.eye(2)))
     axis_px = np.linalg.norm(steps, axis=1)  # (N, 2)
     return coef, scale, axis_px, valid

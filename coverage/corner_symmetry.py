@@ -33,12 +33,13 @@ import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.corner_refine import (
-    _GENERAL_POSITION,
-    _NEIGHBOURS,
     BLUR_MARGIN_SIGMAS,
     MAX_HALF_WINDOW_PX,
     MIN_BLUR_MARGIN_PX,
+    NEIGHBOUR_OFFSETS,
     QUADRATIC_RIDGE,
+    grid_neighbours,
+    in_general_position,
 )
 
 try:  # built by `pip install` where a C compiler is present (pyproject ext-modules, optional)
@@ -133,24 +134,18 @@ def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndar
     homography, _ = cv2.findHomography(board, corners, 0)
     if homography is None or not np.isfinite(homography).all():
         return None, np.zeros((n, 2, 5)), np.zeros(n, bool)
-    lo = grid.min(axis=0) - 1
-    shape = grid.max(axis=0) - lo + 2
-    lookup = np.full((shape[0], shape[1]), -1, np.int64)
-    lookup[grid[:, 0] - lo[0], grid[:, 1] - lo[1]] = np.arange(n)
-    cells = grid[:, None, :] - lo + _NEIGHBOURS[None]
-    members = lookup[cells[..., 0], cells[..., 1]]
+    members = grid_neighbours(grid)
     present = members >= 0
-    predicted = _offsets_under(homography, board, _NEIGHBOURS.astype(np.float64)[None])  # (N, 9, 2)
+    predicted = _offsets_under(homography, board, NEIGHBOUR_OFFSETS.astype(np.float64)[None])  # (N, 9, 2)
     seen = np.where(present[..., None], corners[np.maximum(members, 0)] - corners[:, None, :], 0.0)
     departures = np.where(present[..., None], seen - predicted, 0.0)
-    u, v = (_NEIGHBOURS[:, 0].astype(np.float64), _NEIGHBOURS[:, 1].astype(np.float64))
+    u, v = (NEIGHBOUR_OFFSETS[:, 0].astype(np.float64), NEIGHBOUR_OFFSETS[:, 1].astype(np.float64))
     design = np.stack([np.ones(9), u, v, u * u, u * v, v * v], axis=1)[None] * present[..., None]  # (N, 9, 6)
     ridge = np.diag([0.0, 0.0, 0.0, QUADRATIC_RIDGE, QUADRATIC_RIDGE, QUADRATIC_RIDGE])
     normal = design.transpose(0, 2, 1) @ design + ridge + 1e-12 * np.eye(6)
     coef = np.linalg.solve(normal, design.transpose(0, 2, 1) @ departures)  # (N, 6, 2)
     correction = coef[:, 1:6, :].transpose(0, 2, 1)  # (N, 2, 5): the constant is the corner's own offset, dropped
-    pattern = (present * (1 << np.arange(9))).sum(axis=1)
-    valid = _GENERAL_POSITION[pattern] & np.isfinite(coef).all(axis=(1, 2))
+    valid = in_general_position(present) & np.isfinite(coef).all(axis=(1, 2))
     return homography, correction, valid
 
 

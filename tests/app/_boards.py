@@ -16,3 +16,11 @@ def board_photo(spec: BoardSpec, *, legacy: bool = False, tilt: float = 0.12) ->
     dst = np.float32([[400, 60], [400 + w * (1 - tilt), 90], [400 + w * (1 - tilt), 60 + h - 30], [400, 60 + h]])
     H = cv2.getPerspectiveTransform(src, dst)
     return cv2.warpPerspective(flat, H, (1280, 720), borderValue=128)
+
+
+def board_on_axis(spec: BoardSpec, tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rvec, tvec) of `spec`'s board with its centre on the optical axis at `distance_m`, turned
+    `tilt_deg` about its vertical axis (and 10 deg about its horizontal one)."""
+    R = cv2.Rodrigues(np.array([np.radians(10.0), np.radians(tilt_deg), 0.0]))[0]
+    centre = np.array([*spec.size_mm, 0.0]) / 2000.0
+    return cv2.Rodrigues(R)[0].ravel(), np.array([0.0, 0.0, distance_m]) - R @ centre

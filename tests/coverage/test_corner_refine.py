@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
+from _boards import board_on_axis
 
 from calibcoach.coverage import corner_refine
 from calibcoach.coverage.board import BoardSpec
@@ -20,10 +20,7 @@ SQUARE_M, MARKER_M = SPEC.square_mm / 1000.0, SPEC.marker_mm / 1000.0
 
 
 def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """T_cam_board of the board's centre on the optical axis, turned `tilt_deg` about its vertical axis."""
-    R = cv2.Rodrigues(np.array([np.radians(10.0), np.radians(tilt_deg), 0.0]))[0]
-    centre = np.array([*SPEC.size_mm, 0.0]) / 2000.0
-    return cv2.Rodrigues(R)[0].ravel(), np.array([0.0, 0.0, distance_m]) - R @ centre
+    return board_on_axis(SPEC, tilt_deg, distance_m)
 
 
 def _errors(tilt_deg: float, distance_m: float, *, noise_dn: float = 1.0, supersample: int = 2,

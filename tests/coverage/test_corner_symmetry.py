@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
+from _boards import board_on_axis
 
 from calibcoach.coverage import corner_symmetry
 from calibcoach.coverage.board import BoardSpec
@@ -20,9 +20,7 @@ SQUARE_M, MARKER_M = SPEC.square_mm / 1000.0, SPEC.marker_mm / 1000.0
 
 
 def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    R = cv2.Rodrigues(np.array([np.radians(10.0), np.radians(tilt_deg), 0.0]))[0]
-    centre = np.array([*SPEC.size_mm, 0.0]) / 2000.0
-    return cv2.Rodrigues(R)[0].ravel(), np.array([0.0, 0.0, distance_m]) - R @ centre
+    return board_on_axis(SPEC, tilt_deg, distance_m)
 
 
 def _view(tilt_deg: float, distance_m: float, *, noise_dn: float, blur_px: float, seed: int):
