@@ -70,7 +70,8 @@ def view_detection(view: View) -> Detection:
 
 def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: bool = True,
                edges: EdgeBlur | None = None, blur_px: float | None = None) -> View:
-    """A detected frame as the solver takes it, with its corners also refined on the checker's edges (`refine`).
+    """A detected frame as the solver takes it, with its corners also refined on the checker's edges and
+    fitted to the pattern's point symmetry (`refine`).
 
     `edges`: the frame's edge widths where already measured, or `blur_px` their blurrier family's
     (`EdgeBlur.blur_px`: a held board's, measured on another frame of the hold); the refinement's
@@ -142,6 +143,9 @@ class SessionFinish:
         (the map's curvature is fitted to them) and was worse on every lens. So the masked corners
         are taken where the method's 5-term model suffices, a field of view under 90 deg (where they
         helped most: careful 720p renders 0.063/0.078 -> 0.033/0.022 px), and not through a fisheye.
+        The symmetry fit that follows (coverage/corner_symmetry.py) was measured under 90 deg only; a
+        crossing of two edges stays point-symmetric through a wide lens to first order, so it may
+        suit those lenses too (not measured: the wide and fisheye renders still solve OpenCV's corners).
         """
         return self._refines_views and self.camera.field_of_view_deg()[0] < ORDINARY_LENS_FOV_DEG
 

@@ -64,7 +64,8 @@ class SessionSettings:
     # (0.07-0.12 -> 0.022-0.031 px on a 784-frame 720p capture), and 400 frames solve in ~2.5 s.
     solve_frames: int = 400
     # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
-    # the markers masked out: coverage/corner_refine.py) or "opencv" (as detectBoard returned them).
+    # the markers masked out: coverage/corner_refine.py, then fitted to the pattern's point symmetry:
+    # coverage/corner_symmetry.py) or "opencv" (as detectBoard returned them).
     # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so),
     # and so does the final solve through a lens of 90 deg or more, or a fisheye (`refines_corners`).
     corners: str = "masked"
