@@ -164,9 +164,9 @@ def board_from_args(args: argparse.Namespace) -> BoardSpec:
 
 def add_corner_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--corners", choices=("masked", "opencv"), default="masked",
-                        help="corners of the final solve: OpenCV's refined again on the checker's edges with the markers "
-                             "masked out, then fitted to the pattern's point symmetry (default; a lens of 90 deg or more, or "
-                             "a fisheye, keeps OpenCV's), or OpenCV's as detected")
+                        help="corners of the final solve: OpenCV's fitted to the checker pattern's point symmetry "
+                             "(default, named for the masked refinement it replaced; a lens of 90 deg or more, or a fisheye, "
+                             "keeps OpenCV's), or OpenCV's as detected")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -30,7 +30,6 @@ from calibcoach.app.solve.uncertainty import covered_region_mask, expected_error
 from calibcoach.app.solve.verdict import error_target_px, judge, smeared_capture_advice
 from calibcoach.coverage.board_diagnosis import diagnose_board_mismatch
 from calibcoach.coverage.candidates import ranges_for
-from calibcoach.coverage.corner_refine import refine_on_checker_edges
 from calibcoach.coverage.corner_symmetry import refine_by_symmetry
 from calibcoach.coverage.detector import Detection
 from calibcoach.coverage.grid import CoverageMap
@@ -70,8 +69,8 @@ def view_detection(view: View) -> Detection:
 
 def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: bool = True,
                edges: EdgeBlur | None = None, blur_px: float | None = None) -> View:
-    """A detected frame as the solver takes it, with its corners also refined on the checker's edges and
-    fitted to the pattern's point symmetry (`refine`).
+    """A detected frame as the solver takes it, with its corners also fitted to the pattern's point
+    symmetry (`refine`).
 
     `edges`: the frame's edge widths where already measured, or `blur_px` their blurrier family's
     (`EdgeBlur.blur_px`: a held board's, measured on another frame of the hold); the refinement's
@@ -85,12 +84,11 @@ def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: 
         if blur is None:
             blur = edge_blur(grey, corners, detection.object_points_m).blur_px
         blur = blur if np.isfinite(blur) else None
-        refined = refine_on_checker_edges(grey, corners, detection.object_points_m, board.square_mm / 1000.0,
-                                          board.marker_mm / 1000.0, blur_sigma_px=blur)
-        # then every corner with a local map fitted to the pattern's point symmetry, from there
-        # (coverage/corner_symmetry.py): the masked window leaves corners of small or soft squares
-        # as OpenCV gave them, the symmetry needs no room between the markers and the checker's edges
-        refined = refine_by_symmetry(grey, refined, detection.object_points_m, board, blur_sigma_px=blur)
+        # every corner with a local map fitted to the pattern's point symmetry (coverage/corner_symmetry.py),
+        # from OpenCV's corners: refining them on the checker's edges first (coverage/corner_refine.py, which
+        # the symmetry fit replaced) gave the same error against the truth over 63 renders (1.00x) for
+        # ~0.7 ms more a frame
+        refined = refine_by_symmetry(grey, corners, detection.object_points_m, board, blur_sigma_px=blur)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
                 timestamp_ns=int(frame.timestamp_ns), refined_px=refined)
 
@@ -129,9 +127,10 @@ class SessionFinish:
 
     @property
     def refines_corners(self) -> bool:
-        """Whether the final solve takes the masked corners (`SessionSettings.corners`): on an ordinary lens only.
+        """Whether the final solve takes the refined corners (`SessionSettings.corners`): on an ordinary lens only.
 
-        The refinement solves cornerSubPix's equations over half a square, assuming the checker's
+        Measured for the masked refinement (coverage/corner_refine.py) that the symmetry fit replaced:
+        it solves cornerSubPix's equations over half a square, assuming the checker's
         edges straight through the corner; through a wide or fisheye lens they curve over that
         span, and the curvature pulls outer corners outward: on a 150 deg lens by 0.019 px on
         average at 450-600 px from the centre (OpenCV's corners 0.008), on a 104 deg one by 0.017 px
@@ -143,9 +142,9 @@ class SessionFinish:
         (the map's curvature is fitted to them) and was worse on every lens. So the masked corners
         are taken where the method's 5-term model suffices, a field of view under 90 deg (where they
         helped most: careful 720p renders 0.063/0.078 -> 0.033/0.022 px), and not through a fisheye.
-        The symmetry fit that follows (coverage/corner_symmetry.py) was measured under 90 deg only; a
-        crossing of two edges stays point-symmetric through a wide lens to first order, so it may
-        suit those lenses too (not measured: the wide and fisheye renders still solve OpenCV's corners).
+        The symmetry fit (coverage/corner_symmetry.py) was measured under 90 deg only; a crossing of
+        two edges stays point-symmetric through a wide lens to first order, so it may suit those
+        lenses too (not measured: the wide and fisheye renders still solve OpenCV's corners).
         """
         return self._refines_views and self.camera.field_of_view_deg()[0] < ORDINARY_LENS_FOV_DEG
 

@@ -63,9 +63,9 @@ class SessionSettings:
     # frames alone left the true error at 2-5x what every sharp frame of the same capture gives
     # (0.07-0.12 -> 0.022-0.031 px on a 784-frame 720p capture), and 400 frames solve in ~2.5 s.
     solve_frames: int = 400
-    # The final solve's corners: "masked" (OpenCV's, refined again on the checker's edges alone with
-    # the markers masked out: coverage/corner_refine.py, then fitted to the pattern's point symmetry:
-    # coverage/corner_symmetry.py) or "opencv" (as detectBoard returned them).
+    # The final solve's corners: "masked" (OpenCV's fitted to the pattern's point symmetry:
+    # coverage/corner_symmetry.py; named for the masked refinement, coverage/corner_refine.py, that
+    # it replaced) or "opencv" (as detectBoard returned them).
     # The capture's own incremental solves take OpenCV's either way (the guidance's E was measured so),
     # and so does the final solve through a lens of 90 deg or more, or a fisheye (`refines_corners`).
     corners: str = "masked"

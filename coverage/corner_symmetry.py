@@ -14,11 +14,13 @@ twelve", CVPR 2020, there over a pattern symmetric on the board with its homogra
 The offsets d come from board offsets through the corner's board-to-image map (the frame's
 homography, bent by a quadratic through its grid neighbours), which also says which samples lie
 in a marker's span (not symmetric: left out, with the masked refinement's blur margin) and sets
-the window: half a square, at most `corner_refine.MAX_HALF_WINDOW_PX`. It runs after the masked
-refinement (coverage/corner_refine.py), from its corners, on every corner with neighbours in
-general position. Against the truth, on still frames of 720p renders, the corners' error per
-axis went 0.028 -> 0.018 px (careful) and 0.089-0.097 -> 0.058-0.068 (dim); the replays' error
-over 63 renders halved (bench/results/corner_symmetry.md).
+the window: half a square, at most `corner_refine.MAX_HALF_WINDOW_PX`. The final solve's corners
+are OpenCV's fitted so (`session_finish.frame_view`), every corner with neighbours in general
+position. Against the truth, on still frames of 720p renders, the corners' error per axis went
+0.028 -> 0.018 px (careful) and 0.089-0.097 -> 0.058-0.068 (dim) from the masked refinement's
+(coverage/corner_refine.py, which it replaced in the final solve: run before it, that one changed
+nothing, 1.00x over 63 renders); the replays' error over 63 renders halved
+(bench/results/corner_symmetry.md).
 
 The fit is in C where it was built (coverage/_corner_symmetry.c, ~1 ms a 720p frame), else NumPy
 (the same numbers to ~1e-12 px, several times slower).
