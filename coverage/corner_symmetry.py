@@ -55,8 +55,8 @@ SAMPLE_STEP_PX = 1.0
 MIN_PAIRS = 24  # fewer clean pairs (a far board, a corner at the image's edge): left as it was
 MAX_ITERATIONS = 10
 CONVERGED_PX = 1e-3
-# A corner fitted further than this from where the masked refinement put it is a failure of the map
-# or the symmetry (a corner half off the image, a reflection), not a correction: left as it was.
+# A corner fitted further than this from its start (OpenCV's corner, in the pipeline) is a failure of
+# the map or the symmetry (a corner half off the image, a reflection), not a correction: left as it was.
 MAX_SHIFT_PX = 0.5
 
 # Sample grid in steps: (i + 0.5, j + 0.5), j >= 0 (the upper half-plane; each sample's partner is
