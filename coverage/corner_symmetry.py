@@ -22,8 +22,9 @@ position. Against the truth, on still frames of 720p renders, the corners' error
 nothing, 1.00x over 63 renders); the replays' error over 63 renders halved
 (bench/results/corner_symmetry.md).
 
-The fit is in C where it was built (coverage/_corner_symmetry.c, ~1 ms a 720p frame), else NumPy
-(the same numbers to ~1e-12 px, several times slower).
+The fit, and the samples it makes from each corner's map, are in C where it was built
+(coverage/_corner_symmetry.c), else NumPy (`_pairs`, `_fit_in_numpy`: the same numbers to ~1e-12
+px, several times slower).
 """
 
 from __future__ import annotations
@@ -105,12 +106,8 @@ def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m
     index = np.flatnonzero(valid)
     if index.size == 0:
         return out
-    dp, dm, weights = _pairs(homography, correction[index], grid[index], spec, blur_sigma_px)
-    enough = weights.sum(axis=1) >= MIN_PAIRS
-    index, dp, dm, weights = index[enough], dp[enough], dm[enough], weights[enough]
-    if index.size == 0:
-        return out
-    fitted, iterations = _fit(grey, corners[index], dp, dm, weights)
+    geometry = _pair_geometry(homography, grid[index], spec, blur_sigma_px)
+    fitted, iterations = _fit(grey, corners[index], homography, grid[index], correction[index], geometry)
     keep = (iterations > 0) & (np.linalg.norm(fitted - corners[index], axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = fitted[keep]
     return out
@@ -163,10 +160,34 @@ def _offsets_under(homography: np.ndarray, board: np.ndarray, offsets: np.ndarra
     return out
 
 
-def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray, spec: BoardSpec,
-           blur_sigma_px: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each corner's sample pairs: image offsets (M, P, 2) d of board offsets p and their reflections
-    -d through the corner, and (M, P) weights (1 or 0).
+def _pair_geometry(homography: np.ndarray, grid: np.ndarray, spec: BoardSpec,
+                   blur_sigma_px: float | None) -> tuple[np.ndarray, ...]:
+    """Per corner (each (M,) float64): the sample step, the window's half-width and the squares'
+    marker-free border (all in squares), and whether the squares left and right of it in the
+    template's row (1.0) hold no marker: what `_pairs` (and the C fit) make each corner's samples from.
+
+    The step is a pixel at the corner's scale; the window half a square, at most `MAX_HALF_WINDOW_PX`;
+    the border, the marker-free margin of a square less the blur margin (`corner_refine`'s).
+    """
+    board = grid.astype(np.float64)
+    axes = _offsets_under(homography, board, np.array([[[1e-3, 0.0], [0.0, 1e-3]]])) / 1e-3  # (M, 2 board axes, 2)
+    px_per_square = np.sqrt(np.abs(axes[:, 0, 0] * axes[:, 1, 1] - axes[:, 0, 1] * axes[:, 1, 0]))  # (M,)
+    step = SAMPLE_STEP_PX / px_per_square
+    half = np.minimum(0.5, MAX_HALF_WINDOW_PX / px_per_square)
+    margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
+    border = (spec.square_mm - spec.marker_mm) / 2.0 / spec.square_mm - margin_px / px_per_square
+    # the corner at grid (i, j) sits between squares i - 1 and i, j - 1 and j; the template's samples
+    # have v > 0, so a sample's square is (i - [u < 0], j), its reflection's the one opposite (alike)
+    free = marker_free_squares(spec)
+    right = free[np.clip(grid[:, 0], 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]
+    left = free[np.clip(grid[:, 0] - 1, 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]
+    return step, half, border, left.astype(np.float64), right.astype(np.float64)
+
+
+def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray,
+           geometry: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Each corner's samples: image offsets (M, P, 2) d of board offsets p, each paired with its
+    reflection -d through the corner, and (M, P) weights (1 or 0). The C fit makes the same per corner.
 
     p runs over `_TEMPLATE` scaled to a pixel apart at the corner's scale, within half a square and
     `MAX_HALF_WINDOW_PX`; a pair counts where p lies in a marker-free square (then the reflection
@@ -182,42 +203,39 @@ def _pairs(homography: np.ndarray, correction: np.ndarray, grid: np.ndarray, spe
     pairs of images of +p and -p gave 1.17x the error against the truth over the 63 renders of
     bench/results/corner_symmetry.md (35 of 63 worse).
     """
-    board = grid.astype(np.float64)
-    axes = _offsets_under(homography, board, np.array([[[1e-3, 0.0], [0.0, 1e-3]]])) / 1e-3  # (M, 2 board axes, 2)
-    px_per_square = np.sqrt(np.abs(axes[:, 0, 0] * axes[:, 1, 1] - axes[:, 0, 1] * axes[:, 1, 0]))  # (M,)
-    step = SAMPLE_STEP_PX / px_per_square
-    half = np.minimum(0.5, MAX_HALF_WINDOW_PX / px_per_square)
+    step, half, border, left, right = geometry
     u = _TEMPLATE[None, :, 0] * step[:, None]  # (M, P) board offsets in squares
     v = _TEMPLATE[None, :, 1] * step[:, None]
-    margin_px = max(MIN_BLUR_MARGIN_PX, BLUR_MARGIN_SIGMAS * (blur_sigma_px or 0.0))
-    border = (spec.square_mm - spec.marker_mm) / 2.0 / spec.square_mm - margin_px / px_per_square  # (M,)
-    # the square p lies in: the corner at grid (i, j) sits between squares i - 1 and i, j - 1 and j;
-    # v > 0 always (the template's half-plane), so p's square is (i - [u < 0], j), -p's the one opposite
-    free = marker_free_squares(spec)
-    right = free[np.clip(grid[:, 0], 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]  # (M,) square (i, j)
-    left = free[np.clip(grid[:, 0] - 1, 0, free.shape[0] - 1), np.clip(grid[:, 1], 0, free.shape[1] - 1)]  # (i - 1, j)
-    marker_free = np.where(_TEMPLATE[None, :, 0] < 0, left[:, None], right[:, None])
+    marker_free = np.where(_TEMPLATE[None, :, 0] < 0, left[:, None] != 0.0, right[:, None] != 0.0)
     in_border = np.minimum(np.abs(u), v) <= border[:, None]
     within = _TEMPLATE_RADIUS[None] * step[:, None] <= half[:, None]
     weights = (within & (marker_free | in_border)).astype(np.float64)
-    plus = _offsets_under(homography, board, np.stack([u, v], axis=2))
+    plus = _offsets_under(homography, grid.astype(np.float64), np.stack([u, v], axis=2))
     for axis in (0, 1):
         c = correction[:, axis]
         plus[..., axis] += c[:, 0:1] * u + c[:, 1:2] * v + c[:, 2:3] * u * u + c[:, 3:4] * u * v + c[:, 4:5] * v * v
-    return plus, -plus, weights
+    return plus, weights
 
 
-def _fit(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.ndarray,
-         weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Newton on each corner's symmetry cost: (M, 2) corners and (M,) steps taken (-1: no fit)."""
+def _fit(grey: np.ndarray, starts: np.ndarray, homography: np.ndarray, grid: np.ndarray, correction: np.ndarray,
+         geometry: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on each corner's symmetry cost: (M, 2) corners and (M,) steps taken (0: fewer
+    than `MIN_PAIRS` samples count, not fitted; -1: no converged fit)."""
     if _fit_in_c is not None and grey.dtype == np.uint8:
         image = np.ascontiguousarray(grey)
         out = np.empty_like(starts)
         iterations = np.empty(len(starts), np.int32)
-        _fit_in_c(image, image.shape[0], image.shape[1], len(starts), dp.shape[1], np.ascontiguousarray(starts),
-                  dp, dm, np.ascontiguousarray(weights), MAX_ITERATIONS, CONVERGED_PX, out, iterations)
+        step, half, border, left, right = (np.ascontiguousarray(a, np.float64) for a in geometry)
+        _fit_in_c(image, image.shape[0], image.shape[1], len(starts), len(_TEMPLATE), np.ascontiguousarray(starts),
+                  np.ascontiguousarray(homography, np.float64), np.ascontiguousarray(grid, np.float64),
+                  np.ascontiguousarray(correction, np.float64), step, half, border, left, right, _TEMPLATE,
+                  _TEMPLATE_RADIUS, MIN_PAIRS, MAX_ITERATIONS, CONVERGED_PX, out, iterations)
         return out, iterations
-    return _fit_in_numpy(grey, starts, dp, dm, weights)
+    dp, weights = _pairs(homography, correction, grid, geometry)
+    enough = weights.sum(axis=1) >= MIN_PAIRS
+    fitted, iterations = starts.copy(), np.zeros(len(starts), np.int32)
+    fitted[enough], iterations[enough] = _fit_in_numpy(grey, starts[enough], dp[enough], weights[enough])
+    return fitted, iterations
 
 
 def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -234,9 +252,10 @@ def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarr
     return value, (1.0 - fy) * (b - a) + fy * (d - c), (1.0 - fx) * (c - a) + fx * (d - b), inside
 
 
-def _fit_in_numpy(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.ndarray,
+def _fit_in_numpy(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray,
                   weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_corner_symmetry.fit` in NumPy: every corner steps together, each until its own step is small."""
+    """`_corner_symmetry.fit`'s loop in NumPy: every corner steps together, each until its own step is
+    small, each sample `dp` paired with its reflection `-dp` through the corner."""
     image = np.asarray(grey, np.float64)
     corners = starts.copy()
     iterations = np.full(len(starts), -1, np.int32)
@@ -247,7 +266,7 @@ def _fit_in_numpy(grey: np.ndarray, starts: np.ndarray, dp: np.ndarray, dm: np.n
             break
         c = corners[idx][:, None, :]
         vp, gxp, gyp, ip = _bilinear(image, c[..., 0] + dp[idx, :, 0], c[..., 1] + dp[idx, :, 1])
-        vm, gxm, gym, im = _bilinear(image, c[..., 0] + dm[idx, :, 0], c[..., 1] + dm[idx, :, 1])
+        vm, gxm, gym, im = _bilinear(image, c[..., 0] + -dp[idx, :, 0], c[..., 1] + -dp[idx, :, 1])
         w = np.where(ip & im, weights[idx], 0.0)
         r, jx, jy = vp - vm, gxp - gxm, gyp - gym
         wjx, wjy = w * jx, w * jy
