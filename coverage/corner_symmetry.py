@@ -12,11 +12,11 @@ checkerboards (Schops et al., "Why having 10,000 parameters in your camera model
 twelve", CVPR 2020, there over a pattern symmetric on the board with its homography fitted too).
 
 The offsets d come from board offsets through the corner's board-to-image map (the frame's
-homography, bent by a quadratic through its grid neighbours), which also says which samples lie
-in a marker's span (not symmetric: left out, with the masked refinement's blur margin) and sets
-the window: half a square, at most `corner_refine.MAX_HALF_WINDOW_PX`. The final solve's corners
-are OpenCV's fitted so (`session_finish.frame_view`), every corner with neighbours in general
-position. Against the truth, on still frames of 720p renders, the corners' error per axis went
+homography, bent by a quadratic through its grid neighbours where they determine one), which
+also says which samples lie in a marker's span (not symmetric: left out, with the masked
+refinement's blur margin) and sets the window: half a square, at most
+`corner_refine.MAX_HALF_WINDOW_PX`. The final solve's corners are OpenCV's fitted so
+(`session_finish.frame_view`), every corner of a frame with 6 or more. Against the truth, on still frames of 720p renders, the corners' error per axis went
 0.028 -> 0.018 px (careful) and 0.089-0.097 -> 0.058-0.068 (dim) from the masked refinement's
 (coverage/corner_refine.py, which it replaced in the final solve: run before it, that one changed
 nothing, 1.00x over 63 renders); the replays' error over 63 renders halved
@@ -88,8 +88,8 @@ def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m
 
     `object_points_m`: (N, 2 or 3) the same corners on the board; `blur_sigma_px`: the frame's edge
     blur, which widens the margin kept clear of the markers; `only`: (N,) bool, the corners to fit
-    (the rest, and corners without a local map, enough clean pairs or a converged fit, keep their
-    position).
+    (the rest, every corner of a frame with fewer than 6 or no homography, and corners without
+    enough clean pairs or a converged fit, keep their position).
     """
     corners = np.asarray(corners_px, np.float64).reshape(-1, 2)
     out = corners.copy()
@@ -98,12 +98,10 @@ def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m
         return out
     square_m = spec.square_mm / 1000.0
     grid = np.rint(np.asarray(object_points_m, np.float64).reshape(n, -1)[:, :2] / square_m).astype(np.int64)
-    homography, correction, valid = _board_to_image_maps(corners, grid)
+    homography, correction = _board_to_image_maps(corners, grid)
     if homography is None:
         return out
-    if only is not None:
-        valid &= np.asarray(only, bool)
-    index = np.flatnonzero(valid)
+    index = np.arange(n) if only is None else np.flatnonzero(np.asarray(only, bool))
     if index.size == 0:
         return out
     geometry = _pair_geometry(homography, grid[index], spec, blur_sigma_px)
@@ -113,26 +111,33 @@ def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m
     return out
 
 
-def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
     """Each corner's board-to-image map: the frame's homography (all its corners, least squares),
-    corrected by a quadratic fitted to its detected 8-neighbours' departures from it.
+    corrected by a quadratic fitted to its detected 8-neighbours' departures from it where four of
+    them are in general position, else the homography alone.
 
     The map places the samples and their masks (which squares hold markers, how far the border
     reaches): a tilted board's perspective bends a square's image by ~2 px per square^2 (a 45 deg
     tilt at 0.5 m, 720p). The homography carries the perspective; the neighbours' quadratic adds
     the lens's bending where they determine it (a small ridge holds it at zero along a border row,
-    where the homography's alone is taken).
+    where the homography's alone is taken). Corners whose neighbours do not determine it (the edge
+    of what was detected: the image's border, markers lost in a dim or smeared frame) were first
+    left as OpenCV gave them: 4% of a careful 720p replay's corners, 12% of a dim one's, 23% of a
+    messy one's, at 3-5x the fitted corners' error. With the homography alone they are fitted as
+    well (the pairs are reflections in the image, so the map only sets the window and the masks):
+    against the truth, 0.136 -> 0.046 px per axis on a dim 720p render, 0.048 -> 0.015 careful,
+    0.037-0.071 -> 0.012-0.025 messy (bench/results/homography_alone.md).
 
-    Returns the homography (None when it cannot be fitted), the (N, 2, 5) correction's x, y, x^2,
-    xy, y^2 terms per image axis, and (N,) whether the neighbours are in general position.
+    Returns the homography (None when it cannot be fitted) and the (N, 2, 5) correction's x, y,
+    x^2, xy, y^2 terms per image axis (zero where the neighbours do not determine it).
     """
     n = len(corners)
     if n < 6:
-        return None, np.zeros((n, 2, 5)), np.zeros(n, bool)
+        return None, np.zeros((n, 2, 5))
     board = grid.astype(np.float64)
     homography, _ = cv2.findHomography(board, corners, 0)
     if homography is None or not np.isfinite(homography).all():
-        return None, np.zeros((n, 2, 5)), np.zeros(n, bool)
+        return None, np.zeros((n, 2, 5))
     members = grid_neighbours(grid)
     present = members >= 0
     predicted = _offsets_under(homography, board, NEIGHBOUR_OFFSETS.astype(np.float64)[None])  # (N, 9, 2)
@@ -144,8 +149,8 @@ def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndar
     normal = design.transpose(0, 2, 1) @ design + ridge + 1e-12 * np.eye(6)
     coef = np.linalg.solve(normal, design.transpose(0, 2, 1) @ departures)  # (N, 6, 2)
     correction = coef[:, 1:6, :].transpose(0, 2, 1)  # (N, 2, 5): the constant is the corner's own offset, dropped
-    valid = in_general_position(present) & np.isfinite(coef).all(axis=(1, 2))
-    return homography, correction, valid
+    determined = in_general_position(present) & np.isfinite(coef).all(axis=(1, 2))
+    return homography, np.where(determined[:, None, None], correction, 0.0)
 
 
 def _offsets_under(homography: np.ndarray, board: np.ndarray, offsets: np.ndarray) -> np.ndarray:
