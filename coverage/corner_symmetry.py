@@ -16,11 +16,11 @@ homography, bent by a quadratic through its grid neighbours where they determine
 also says which samples lie in a marker's span (not symmetric: left out, with the masked
 refinement's blur margin) and sets the window: half a square, at most
 `corner_refine.MAX_HALF_WINDOW_PX`. The final solve's corners are OpenCV's fitted so
-(`session_finish.frame_view`), every corner of a frame with 6 or more. Against the truth, on still frames of 720p renders, the corners' error per axis went
-0.028 -> 0.018 px (careful) and 0.089-0.097 -> 0.058-0.068 (dim) from the masked refinement's
-(coverage/corner_refine.py, which it replaced in the final solve: run before it, that one changed
-nothing, 1.00x over 63 renders); the replays' error over 63 renders halved
-(bench/results/corner_symmetry.md).
+(`session_finish.frame_view`), every corner of a frame with 6 or more. Against the truth, on
+still frames of 720p renders, the corners' error per axis went 0.028 -> 0.018 px (careful) and
+0.089-0.097 -> 0.058-0.068 (dim) from the masked refinement's (coverage/corner_refine.py, which it
+replaced in the final solve: run before it, that one changed nothing, 1.00x over 63 renders); the
+replays' error over 63 renders halved (bench/results/corner_symmetry.md).
 
 The fit, and the samples it makes from each corner's map, are in C where it was built
 (coverage/_corner_symmetry.c), else NumPy (`_pairs`, `_fit_in_numpy`: the same numbers to ~1e-12
@@ -122,8 +122,8 @@ def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndar
     the lens's bending where they determine it (a small ridge holds it at zero along a border row,
     where the homography's alone is taken). Corners whose neighbours do not determine it (the edge
     of what was detected: the image's border, markers lost in a dim or smeared frame) were first
-    left as OpenCV gave them: 4% of a careful 720p replay's corners, 12% of a dim one's, 23% of a
-    messy one's, at 3-5x the fitted corners' error. With the homography alone they are fitted as
+    left as OpenCV gave them: 4% of the corners in a careful 720p replay's final solve, 12% in a dim
+    one's, 23% in a messy one's, at 3-5x the fitted corners' error. With the homography alone they are fitted as
     well (the pairs are reflections in the image, so the map only sets the window and the masks):
     against the truth, 0.136 -> 0.046 px per axis on a dim 720p render, 0.048 -> 0.015 careful,
     0.037-0.071 -> 0.012-0.025 messy (bench/results/homography_alone.md).
