@@ -3,9 +3,10 @@
 For each cached render (bench/renders.py): every `--every`-th frame whose board moved at most
 `--max-move` px between its neighbours (by the truth's poses) and shows at least 12 corners,
 detected as the scan detects; its corners as OpenCV gives them, refined on the checker's edges
-(coverage/corner_refine.py, the frame's own edge blur) and then fitted to the pattern's point
-symmetry (coverage/corner_symmetry.py), as `frame_view` does for the final solve; each against the
-truth's projection. Prints the RMS per axis of each, and the share of corners each moved.
+(coverage/corner_refine.py, the frame's own edge blur), and fitted to the pattern's point symmetry
+from OpenCV's (coverage/corner_symmetry.py), as `frame_view` does for the final solve; each against
+the truth's projection. Prints the RMS per axis of each. (The first runs in
+bench/results/corner_symmetry.md fitted the symmetry from the masked corners, as the pipeline then did.)
 
     .venv/bin/python bench/corner_symmetry.py careful720_png_s101 dim720_png_s102 [--every 6] [--max-move 2]
 
@@ -22,15 +23,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from renders import CACHE  # noqa: E402 - bench modules beside this one
+from renders import CACHE, detected_frames  # noqa: E402 - bench modules beside this one
 
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.corner_refine import refine_on_checker_edges  # noqa: E402
 from calibcoach.coverage.corner_symmetry import refine_by_symmetry  # noqa: E402
-from calibcoach.coverage.detector import CharucoBoardDetector  # noqa: E402
 from calibcoach.coverage.sharpness import edge_blur  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
-from calibcoach.drivers.replay import open_source  # noqa: E402
 
 
 def compare(name: str, *, every: int, max_move_px: float, limit: int) -> str:
@@ -38,35 +37,28 @@ def compare(name: str, *, every: int, max_move_px: float, limit: int) -> str:
     folder = CACHE / name
     truth = read_truth(folder)
     poses = {i: (r, t) for i, r, t in truth.poses}
-    detector = CharucoBoardDetector(spec)
-    capture = folder / "frames" if (folder / "frames").is_dir() else folder / "capture.avi"
     errors: dict[str, list[np.ndarray]] = {"OpenCV": [], "masked": [], "symmetry": []}
     frames = 0
-    with open_source(capture) as source:
-        for frame in source:
-            if frame.index % every or frame.index - 1 not in poses or frame.index + 1 not in poses:
-                continue
-            grey = frame.grey()
-            detection = detector.detect(grey)
-            if detection.corner_count < 12:
-                continue
-            board = detection.object_points_m.astype(np.float64)
-            true = truth.camera.project(board, *poses[frame.index])
-            before = truth.camera.project(board, *poses[frame.index - 1])
-            after = truth.camera.project(board, *poses[frame.index + 1])
-            if np.abs(after - before).max() > max_move_px:
-                continue
-            corners = detection.corners_px.astype(np.float64)
-            blur = edge_blur(grey, corners, detection.object_points_m).blur_px
-            blur = blur if np.isfinite(blur) else None
-            masked = refine_on_checker_edges(grey, corners, board, spec.square_mm / 1000.0, spec.marker_mm / 1000.0,
-                                             blur_sigma_px=blur)
-            fitted = refine_by_symmetry(grey, masked, board, spec, blur_sigma_px=blur)
-            for key, found in (("OpenCV", corners), ("masked", masked), ("symmetry", fitted)):
-                errors[key].append(found - true)
-            frames += 1
-            if frames >= limit:
-                break
+    for index, grey, detection in detected_frames(name, every=every, min_corners=12):
+        if index - 1 not in poses or index + 1 not in poses:
+            continue
+        board = detection.object_points_m.astype(np.float64)
+        true = truth.camera.project(board, *poses[index])
+        before = truth.camera.project(board, *poses[index - 1])
+        after = truth.camera.project(board, *poses[index + 1])
+        if np.abs(after - before).max() > max_move_px:
+            continue
+        corners = detection.corners_px.astype(np.float64)
+        blur = edge_blur(grey, corners, detection.object_points_m).blur_px
+        blur = blur if np.isfinite(blur) else None
+        masked = refine_on_checker_edges(grey, corners, board, spec.square_mm / 1000.0, spec.marker_mm / 1000.0,
+                                         blur_sigma_px=blur)
+        fitted = refine_by_symmetry(grey, corners, board, spec, blur_sigma_px=blur)
+        for key, found in (("OpenCV", corners), ("masked", masked), ("symmetry", fitted)):
+            errors[key].append(found - true)
+        frames += 1
+        if frames >= limit:
+            break
     if not frames:
         return f"| {name} | 0 | | | |"
     rms = {key: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for key, v in errors.items()}

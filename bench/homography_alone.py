@@ -26,15 +26,13 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from renders import CACHE  # noqa: E402 - bench modules beside this one
+from renders import CACHE, detected_frames  # noqa: E402 - bench modules beside this one
 
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.corner_refine import grid_neighbours, in_general_position  # noqa: E402
 from calibcoach.coverage.corner_symmetry import refine_by_symmetry  # noqa: E402
-from calibcoach.coverage.detector import CharucoBoardDetector  # noqa: E402
 from calibcoach.coverage.sharpness import edge_blur  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
-from calibcoach.drivers.replay import open_source  # noqa: E402
 
 
 def compare(name: str, *, every: int) -> str:
@@ -42,16 +40,8 @@ def compare(name: str, *, every: int) -> str:
     folder = CACHE / name
     truth = read_truth(folder)
     K, D = truth.camera.camera_matrix, np.asarray(truth.camera.dist_coeffs, np.float64)
-    source = folder / "frames" if (folder / "frames").is_dir() else folder / "capture.avi"
-    detector = CharucoBoardDetector(spec)
     before, after, either, frames = [], [], [], 0
-    for frame in open_source(source):
-        if frame.index % every:
-            continue
-        grey = frame.grey()
-        detection = detector.detect(grey)
-        if detection.corner_count < 8:
-            continue
+    for _index, grey, detection in detected_frames(name, every=every, min_corners=8):
         corners = detection.corners_px.astype(np.float64)
         board = detection.object_points_m.astype(np.float64)
         blur = edge_blur(grey, corners, board).blur_px

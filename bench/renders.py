@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,8 +20,10 @@ import cv2
 import numpy as np
 
 from calibcoach.coverage.board import BoardSpec
+from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.drivers.lens import CameraModel
 from calibcoach.drivers.recording import write_truth
+from calibcoach.drivers.replay import open_source
 from calibcoach.drivers.sim import LENSES, SimulatedCamera, handheld_trajectory
 
 CACHE = Path(__file__).resolve().parent / "cache"
@@ -109,6 +112,21 @@ def capture_path(name: str, seed: int) -> Path:
     """The folder calibcoach reads: the PNG folder, or the .avi for video cells."""
     folder = CACHE / f"{name}_s{seed}"
     return folder / ("frames" if CELLS[name].container == "png" else "capture.avi")
+
+
+def detected_frames(name: str, *, every: int, min_corners: int) -> Iterator[tuple[int, np.ndarray, Detection]]:
+    """(index, grey, detection) of every `every`-th frame of cached render `name` (e.g.
+    "dim720_png_s104") whose board shows at least `min_corners` corners, detected as the scan does."""
+    folder = CACHE / name
+    detector = CharucoBoardDetector(BoardSpec())
+    with open_source(folder / "frames" if (folder / "frames").is_dir() else folder / "capture.avi") as source:
+        for frame in source:
+            if frame.index % every:
+                continue
+            grey = frame.grey()
+            detection = detector.detect(grey)
+            if detection.corner_count >= min_corners:
+                yield frame.index, grey, detection
 
 
 def render(name: str, seed: int) -> Path:
