@@ -80,7 +80,7 @@ def test_corners_whose_neighbours_do_not_bend_the_map_are_fitted_on_the_homograp
     # Two rows of corners three squares apart: no corner has four neighbours in general position, so
     # none gets the quadratic correction, yet each is fitted through the frame's homography: measured
     # 0.040 -> 0.012 px per axis here (OpenCV's -> fitted). In the replays such corners -- the edge of
-    # what a dim or smeared frame detected -- went 0.037-0.136 -> 0.012-0.046 px against the truth
+    # what a dim or smeared frame detected -- went 0.037-0.159 -> 0.012-0.060 px against the truth
     # (bench/results/homography_alone.md).
     opencv_sq, fitted_sq, count = 0.0, 0.0, 0
     for seed in (1, 2):
