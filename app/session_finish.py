@@ -84,10 +84,10 @@ def frame_view(frame: Frame, detection: Detection, board: BoardSpec, *, refine: 
         if blur is None:
             blur = edge_blur(grey, corners, detection.object_points_m).blur_px
         blur = blur if np.isfinite(blur) else None
-        # every corner with a local map fitted to the pattern's point symmetry (coverage/corner_symmetry.py),
-        # from OpenCV's corners: refining them on the checker's edges first (coverage/corner_refine.py, which
-        # the symmetry fit replaced) gave the same error against the truth over 63 renders (1.00x) for
-        # ~0.7 ms more a frame
+        # every corner (of a frame with 6 or more) fitted to the pattern's point symmetry
+        # (coverage/corner_symmetry.py), from OpenCV's corners: refining them on the checker's edges first
+        # (coverage/corner_refine.py, which the symmetry fit replaced) gave the same error against the
+        # truth over 63 renders (1.00x) for ~0.7 ms more a frame
         refined = refine_by_symmetry(grey, corners, detection.object_points_m, board, blur_sigma_px=blur)
     return View(frame.index, frame.name, detection.ids.copy(), corners, detection.object_points_m.astype(np.float64),
                 timestamp_ns=int(frame.timestamp_ns), refined_px=refined)

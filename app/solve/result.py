@@ -23,14 +23,16 @@ class View:
     # so a group of k counts 1/k each. The solve itself uses every frame at full weight.
     information_weight: float = 1.0
     timestamp_ns: int | None = None  # the frame's capture time (source clock); None where unknown
-    # (N, 2) float64 the same corners refined on the checker's edges alone, markers masked out
-    # (coverage/corner_refine.py); None where not computed. The final solve takes these
-    # (`as_refined`, unless --corners opencv), the capture's incremental solves OpenCV's.
+    # (N, 2) float64 the same corners fitted to the pattern's point symmetry (coverage/corner_symmetry.py;
+    # before it, refined on the checker's edges: coverage/corner_refine.py); None where not computed.
+    # The final solve takes these (`as_refined`, unless --corners opencv), the capture's incremental
+    # solves OpenCV's.
     refined_px: np.ndarray | None = None
-    # (N,) bool: the corners the masked refinement left as OpenCV gave them (squares too small or too
-    # soft for its mask); set by `as_refined`, None where no refinement ran. They keep the markers'
-    # pull and, in a tracked frame, part of the frame before's error, so the final solve weighs them
-    # by their own measured variance (`robust.unrefined_corner_weights`).
+    # (N,) bool: the corners the refinement left as OpenCV gave them (for the symmetry fit: a frame of
+    # fewer than 6 corners, too few clean sample pairs, or no converged fit within 0.5 px); set by
+    # `as_refined`, None where no refinement ran. They keep the markers' pull and, in a tracked
+    # frame, part of the frame before's error, so the final solve weighs them by their own measured
+    # variance (`robust.unrefined_corner_weights`).
     unrefined: np.ndarray | None = None
     # (N,) weight of each corner's rows relative to the view's own (`information_weight` and the
     # weighted refinement's view weight): in the weighted refinement, the information and the noise
@@ -38,7 +40,7 @@ class View:
     corner_weights: np.ndarray | None = None
 
     def as_refined(self) -> View:
-        """This view with its masked-refined corners as its observations (itself where it has none)."""
+        """This view with its refined corners as its observations (itself where it has none)."""
         if self.refined_px is None:
             return self
         # the refinement returns OpenCV's corner, bit for bit, where it does not refine one

@@ -14,7 +14,7 @@ against the latest solve, including those an earlier round set aside, so a corne
 cleaner solve comes back: the loop converges to the corner set consistent with its own final
 solve, not to the union of every round's suspicions. Views that stay but are noisier than the
 typical one then count by their inverse corner variance in a weighted refinement (`weighted.py`),
-and so do the corners the masked refinement could not refine (`unrefined_corner_weights`).
+and so do the corners the corner refinement could not refine (`unrefined_corner_weights`).
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def _subset(view: View, out: np.ndarray) -> View:
 
 
 def unrefined_corner_weights(views: Sequence[View], residuals: Sequence[np.ndarray]) -> list[np.ndarray] | None:
-    """Per view (N_v,) weights: 1 for corners the masked refinement refined, w_u for those it left as
+    """Per view (N_v,) weights: 1 for corners the corner refinement refined, w_u for those it left as
     OpenCV gave them (`View.unrefined`); None where no view has both kinds.
 
     Those corners keep the pull of the markers' edges (coverage/corner_refine.py), and a tracked
@@ -121,8 +121,10 @@ def unrefined_corner_weights(views: Sequence[View], residuals: Sequence[np.ndarr
     which more frames do not average out. w_u is their inverse variance against the refined corners
     of the same views: the median over views with three or more of each of (refined mean square
     residual / unrefined), so that a view's own noise (a softer or smeared frame) does not count as
-    the kind's. Floored at `weighted.MIN_WEIGHT`, capped at 1. On careful 720p renders w_u is
-    0.13-0.22 (19-30% of the corners), on dim ones 0.31-0.38.
+    the kind's. Floored at `weighted.MIN_WEIGHT`, capped at 1. Measured with the masked refinement
+    (coverage/corner_refine.py): on careful 720p renders w_u was 0.13-0.22 (19-30% of the corners), on
+    dim ones 0.31-0.38. The symmetry fit that replaced it leaves few corners (those without enough
+    clean pairs or a converged fit; bench/results/homography_alone.md).
     """
     ratios = []
     for view, res in zip(views, residuals, strict=True):
@@ -315,7 +317,7 @@ def _robust_once(
     weights = view_weights(residuals)
     corner_weights = unrefined_corner_weights(kept, residuals)
     if (np.any(weights < 0.999) or corner_weights is not None) and len(kept) >= 3:
-        # views noisier than the typical one, and corners the masked refinement could not refine,
+        # views noisier than the typical one, and corners the corner refinement could not refine,
         # count by their inverse corner variance (weighted.py)
         camera, rvecs, tvecs = weighted_refine(camera, kept, rvecs, tvecs, weights, corner_weights=corner_weights)
         kept = [replace(v, information_weight=v.information_weight * float(w),

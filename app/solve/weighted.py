@@ -9,7 +9,7 @@ rows scaled by sqrt(w_v), w_v = (sigma_typical / sigma_v)^2 from its own residua
 a view is trusted at most as much as a typical one, so no single view can take over). The normal
 equations are reduced to the intrinsics by the same Schur complement the uncertainty uses, one
 6 x 6 pose block per view, so it stays cheap for 60 views. Corners can carry weights of their own
-on top of their view's (`corner_weights`): the corners the masked refinement could not refine
+on top of their view's (`corner_weights`): the corners the corner refinement could not refine
 count by their measured variance against the refined ones (`robust.unrefined_corner_weights`).
 """
 

@@ -19,13 +19,9 @@ CAMERA = LENSES["webcam720"]
 SQUARE_M, MARKER_M = SPEC.square_mm / 1000.0, SPEC.marker_mm / 1000.0
 
 
-def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    return board_on_axis(SPEC, tilt_deg, distance_m)
-
-
 def _errors(tilt_deg: float, distance_m: float, *, noise_dn: float = 1.0, supersample: int = 2,
             camera=CAMERA) -> tuple[float, float, np.ndarray, np.ndarray]:
-    rvec, tvec = _board_at(tilt_deg, distance_m)
+    rvec, tvec = board_on_axis(SPEC, tilt_deg, distance_m)
     image = render_board_view(camera, SPEC, rvec, tvec, blur_sigma_px=0.6, noise_sigma_dn=noise_dn, seed=1,
                               supersample=supersample)
     detection = CharucoBoardDetector(SPEC).detect(image)
@@ -58,7 +54,7 @@ def test_a_board_too_blurred_for_its_squares_keeps_opencvs_corners() -> None:
     # Squares of ~40 px put the markers' edges 5.4 px from the checker's; at an edge width of 1.5 px
     # (what edge_blur reads on a soft frame) the mask would leave the checker's edge less than two
     # widths each side: no mask separates them, so the corners are left as detected.
-    rvec, tvec = _board_at(20.0, 0.7)
+    rvec, tvec = board_on_axis(SPEC, 20.0, 0.7)
     image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=1.0, seed=1)
     detection = CharucoBoardDetector(SPEC).detect(image)
     assert detection.corner_count >= 20
@@ -68,7 +64,7 @@ def test_a_board_too_blurred_for_its_squares_keeps_opencvs_corners() -> None:
 
 
 def test_corners_without_a_local_homography_keep_their_position() -> None:
-    rvec, tvec = _board_at(20.0, 0.6)
+    rvec, tvec = board_on_axis(SPEC, 20.0, 0.6)
     image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.6, seed=1)
     detection = CharucoBoardDetector(SPEC).detect(image)
     # a corner, the two above and below it and one diagonal: four points, three on a line, from which
@@ -94,7 +90,7 @@ def test_the_c_window_sums_give_numpys_corners(monkeypatch: pytest.MonkeyPatch) 
     # their weights, on a board inside the image and cut so that windows hang off the image's left
     # and bottom edges (whose outermost rows and columns have no gradient in either).
     assert corner_refine._moments_in_c is not None, "the C extension coverage/_checker_edges.c was not built (pip install -e .)"
-    rvec, tvec = _board_at(40.0, 0.45)
+    rvec, tvec = board_on_axis(SPEC, 40.0, 0.45)
     image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=0.7, noise_sigma_dn=1.5, seed=3)
     detection = CharucoBoardDetector(SPEC).detect(image)
     assert detection.corner_count >= 20

@@ -19,12 +19,8 @@ CAMERA = LENSES["webcam720"]
 SQUARE_M, MARKER_M = SPEC.square_mm / 1000.0, SPEC.marker_mm / 1000.0
 
 
-def _board_at(tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    return board_on_axis(SPEC, tilt_deg, distance_m)
-
-
 def _view(tilt_deg: float, distance_m: float, *, noise_dn: float, blur_px: float, seed: int):
-    rvec, tvec = _board_at(tilt_deg, distance_m)
+    rvec, tvec = board_on_axis(SPEC, tilt_deg, distance_m)
     image = render_board_view(CAMERA, SPEC, rvec, tvec, blur_sigma_px=blur_px, noise_sigma_dn=noise_dn, seed=seed)
     detection = CharucoBoardDetector(SPEC).detect(image)
     assert detection.corner_count >= 20
