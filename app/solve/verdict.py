@@ -2,10 +2,10 @@
 
 RMS reprojection error only says the model fits the frames it saw. A capture of frontal, centred
 frames fits beautifully and is still tens of pixels wrong at the edges, so a calibration is
-trusted only when the coverage map is (nearly) complete -- or lacks only image regions into which
-the model's extrapolation is pinned down, by E over the whole image -- and the expected projection
-error E where the board was seen is small against the camera's own corner noise; otherwise the
-grade is "insufficient" whatever the RMS.
+trusted only when the coverage map is (nearly) complete -- or shows every tilt and lacks only
+image regions or a range into which the model's extrapolation is pinned down, by E over the whole
+image -- and the expected projection error E where the board was seen is small against the
+camera's own corner noise; otherwise the grade is "insufficient" whatever the RMS.
 """
 
 from __future__ import annotations
@@ -38,17 +38,22 @@ ERROR_TARGET_CAP_PX = 0.05
 ERROR_TRUST_PX = 0.20
 NOISY_CORNERS_PX = 0.3  # corner noise per coordinate above which the verdict names noise as the limit
 MIN_COVERAGE_TO_TRUST = 0.85
-# ... unless only image regions are missing and the model pins them down anyway. Coverage stands in
-# for what the data determines; where the board never went, the projection there is the model's
-# extrapolation, and the solve's covariance says how well that is determined: E over the whole
-# reachable image (not just the covered region) is held to the same trust bound as E over the
-# covered region, because a point measured there carries that error. Tilted views and both ranges
-# are still required: they are what separates focal length from distance, and a linearised
-# covariance is at its least reliable along that valley. Fast-swinging captures that never reach
-# a third of the image (the messy renders: 82-83% coverage, all tilts and ranges) extrapolate to
-# 0.016-0.047 px against the truth over the whole image with E there 0.13-0.15 px; one that also
-# lacks tilts and ranges (60%, 0.58 px off) stays refused. bench/results/coverage_trust.md.
-
+# ... unless only image regions and ranges are missing and the model pins them down anyway.
+# Coverage stands in for what the data determines; where the board never went, the projection
+# there is the model's extrapolation, and the solve's covariance says how well that is determined:
+# E over the whole reachable image (not just the covered region) is held to the same trust bound as
+# E over the covered region, because a point measured there carries that error. Every tilt is still
+# required: tilted views are what separates focal length from distance (a frontal board at twice
+# the distance through twice the focal length looks the same), and without them E is not honest --
+# taking the far views out of captures that had them (which also takes tilt directions) left true
+# errors 1.7-1100x E over the covered region. A missing range is not such a blind spot: in the
+# 6 captures of bench/results/range_ablation.md that lacked a range (never shown, or its views taken
+# out) but showed every tilt, E stayed honest (true / E 0.25-1.18, errors 0.011-0.041 px), while
+# taking the near views out of the careful and dim captures cost them 1.5-6x in accuracy and E rose
+# with it; where tilts went with the range the verdict still refuses.
+# Messy renders that never reach a third of the image (82-83% coverage) extrapolate to 0.016-0.047
+# px against the truth over the whole image with E there 0.13-0.15 px; one that also lacks tilts
+# (60%, 0.58 px off) stays refused. bench/results/coverage_trust.md.
 
 def resolution_scale(image_size: tuple[int, int]) -> float:
     return float(np.hypot(*image_size)) / REFERENCE_DIAGONAL_PX
@@ -121,21 +126,21 @@ def judge(
     trusted = True
     trust_limit = max(ERROR_TRUST_PX * max(resolution_scale(image_size), 0.5), noise_px)
     coverage_short = coverage_completeness < MIN_COVERAGE_TO_TRUST
-    regions_only = not coverage_missing.get("tilts") and not coverage_missing.get("distances")
-    # only image regions missing, and the model's extrapolation into them within the trust bound
-    extrapolated = coverage_short and regions_only and reachable_error_px is not None and reachable_error_px <= trust_limit
+    tilts_complete = not coverage_missing.get("tilts")
+    # only image regions or ranges missing, and the model's extrapolation into them within the trust bound
+    extrapolated = coverage_short and tilts_complete and reachable_error_px is not None and reachable_error_px <= trust_limit
     if extrapolated:
         reasons.append(
             f"Coverage is only {coverage_completeness * 100:.0f}% (below {MIN_COVERAGE_TO_TRUST * 100:.0f}%): "
             + _missing_words(coverage_missing).rstrip(".")
-            + f". The lens model extrapolates into them: E over the whole image a board "
+            + f". Every tilt was shown, and the lens model extrapolates into the rest: E over the whole image a board "
             f"can be seen in is {reachable_error_px:.3f} px, within the {trust_limit:.3f} px trust bound, so it is "
-            "trusted; capture those regions if you need them measured rather than extrapolated.")
+            "trusted; capture those views if you need them measured rather than extrapolated.")
     elif coverage_short:
         trusted = False
         reasons.append(f"Coverage is only {coverage_completeness * 100:.0f}% (needs {MIN_COVERAGE_TO_TRUST * 100:.0f}%): " + _missing_words(coverage_missing))
-        if regions_only and reachable_error_px is not None:
-            reasons.append(f"Only image regions are missing, but the model's extrapolation into them is not pinned down: "
+        if tilts_complete and reachable_error_px is not None:
+            reasons.append(f"Every tilt was shown, but the model's extrapolation into the rest is not pinned down: "
                            f"E over the whole image a board can be seen in is {reachable_error_px:.3f} px, "
                            f"above the {trust_limit:.3f} px trust bound.")
     elif coverage_completeness < 0.999:
