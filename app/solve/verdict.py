@@ -38,22 +38,22 @@ ERROR_TARGET_CAP_PX = 0.05
 ERROR_TRUST_PX = 0.20
 NOISY_CORNERS_PX = 0.3  # corner noise per coordinate above which the verdict names noise as the limit
 MIN_COVERAGE_TO_TRUST = 0.85
-# ... unless only image regions and ranges are missing and the model pins them down anyway.
-# Coverage stands in for what the data determines; where the board never went, the projection
-# there is the model's extrapolation, and the solve's covariance says how well that is determined:
-# E over the whole reachable image (not just the covered region) is held to the same trust bound as
-# E over the covered region, because a point measured there carries that error. Every tilt is still
-# required: tilted views are what separates focal length from distance (a frontal board at twice
-# the distance through twice the focal length looks the same), and without them E is not honest --
-# taking the far views out of captures that had them (which also takes tilt directions) left true
-# errors 1.7-1100x E over the covered region. A missing range is not such a blind spot: in the
-# 6 captures of bench/results/range_ablation.md that lacked a range (never shown, or its views taken
-# out) but showed every tilt, E stayed honest (true / E 0.25-1.18, errors 0.011-0.041 px), while
-# taking the near views out of the careful and dim captures cost them 1.5-6x in accuracy and E rose
-# with it; where tilts went with the range the verdict still refuses.
-# Messy renders that never reach a third of the image (82-83% coverage) extrapolate to 0.016-0.047
-# px against the truth over the whole image with E there 0.13-0.15 px; one that also lacks tilts
-# (60%, 0.58 px off) stays refused. bench/results/coverage_trust.md.
+# ... unless every tilt was shown and only image regions or a range are missing, and the model pins
+# them down anyway. Coverage stands in for what the data determines; where the board never went,
+# the projection there is the model's extrapolation, and the solve's covariance says how well that
+# is determined: E over the whole reachable image (not just the covered region) is held to the same
+# trust bound as E over the covered region, because a point measured there carries that error.
+# Every tilt is still required: tilted views are what separates focal length from distance (a
+# frontal board at twice the distance through twice the focal length looks the same), and without
+# them E can read low -- a fast-swinging capture that never showed one steep tilt read E 0.085 px
+# where the truth was 0.168 (0.123 against 0.175 over the whole image, which would have passed).
+# A missing range is no such blind spot: in the 6 captures of bench/results/range_ablation.md that
+# lacked one (never shown, or its views taken out) but showed every tilt, E stayed honest (true / E
+# 0.25-1.18, errors 0.011-0.041 px); taking the near views out of careful and dim captures changed
+# their error 0.35-10x (median 2x) and E followed. Messy renders that never reach a third of the
+# image (82-83% coverage) extrapolate to 0.016-0.047 px against the truth over the whole image with
+# E there 0.13-0.15 px (bench/results/coverage_trust.md).
+
 
 def resolution_scale(image_size: tuple[int, int]) -> float:
     return float(np.hypot(*image_size)) / REFERENCE_DIAGONAL_PX
