@@ -38,7 +38,7 @@ TILT_HISTOGRAM_EDGES_DEG = (-90.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 90.0)
 _AXIS_WEIGHTS = {"region": 0.5, "tilt": 0.3, "distance": 0.2}
 
 
-def _tilt_cells(tilt_deg: float, tilt_x_deg: float, tilt_y_deg: float) -> tuple[str, ...]:
+def tilt_cells(tilt_deg: float, tilt_x_deg: float, tilt_y_deg: float) -> tuple[str, ...]:
     """The tilt cells a view at this tilt (angle to the line of sight, and about each image axis) counts for."""
     cells: list[str] = []
     if tilt_deg < 15.0:
@@ -133,7 +133,7 @@ class CoverageMap:
                 continue
             tilt, tx, ty, distance_m = pose
             cell = self.ranges.cell(distance_m)
-            made.append(Contribution(region_counts, _tilt_cells(tilt, tx, ty), cell if cell in DISTANCE_CELLS else None, tx, ty))
+            made.append(Contribution(region_counts, tilt_cells(tilt, tx, ty), cell if cell in DISTANCE_CELLS else None, tx, ty))
         return made
 
     def gain(self, c: Contribution, *, region_only: bool = False) -> float:

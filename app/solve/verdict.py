@@ -47,7 +47,7 @@ MIN_COVERAGE_TO_TRUST = 0.85
 # frontal board at twice the distance through twice the focal length looks the same), and without
 # them E can read low -- a fast-swinging capture that never showed one steep tilt read E 0.085 px
 # where the truth was 0.168 (0.123 against 0.175 over the whole image, which would have passed).
-# A missing range is no such blind spot: in the 6 captures of bench/results/range_ablation.md that
+# A missing range is no such blind spot: in the 6 captures of bench/results/coverage_ablation.md that
 # lacked one (never shown, or its views taken out) but showed every tilt, E stayed honest (true / E
 # 0.25-1.18, errors 0.011-0.041 px); taking the near views out of careful and dim captures changed
 # their error 0.35-10x (median 2x) and E followed. Messy renders that never reach a third of the

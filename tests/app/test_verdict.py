@@ -144,7 +144,7 @@ def test_missing_regions_the_model_extrapolates_into_within_the_trust_bound_are_
     assert short(0.39, noise=0.4).trusted and not short(0.41, noise=0.4).trusted  # the bound is the noise when larger
     assert not short(None).trusted  # no whole-image E: short coverage is refused as before
     # a range missing (the fast-swinging captures never hold the board near) is judged the same way: with every tilt
-    # shown E stays honest without it (bench/results/range_ablation.md)
+    # shown E stays honest without it (bench/results/coverage_ablation.md)
     near_missing = short(0.1, missing={**REGIONS_ONLY, "distances": ["near"]})
     assert near_missing.trusted and has(near_missing, "missing 3 image regions; distances near. Every tilt was shown")
     assert not short(ERROR_TRUST_PX + 1e-4, missing={**REGIONS_ONLY, "distances": ["near"]}).trusted

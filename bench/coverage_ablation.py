@@ -1,20 +1,23 @@
-"""What a missing range costs: each render replayed whole, then with its near (or far) views taken out.
+"""What a missing range or tilt costs: each render replayed whole, then with one kind of view taken out.
 
-The verdict asks for near and far views. This bench measures what leaving one range out does to
-the calibration and to E, on captures that did show both: after the replay (`run_replay`) and
-before the final solve, every kept, reserve and repeat view whose board centre lies in the dropped
-range (by the true pose and the true lens's ranges, so the bench's choice does not depend on the
-solve it judges) is removed. Reported per render and drop: views left, what the final coverage
+The verdict asks for near and far views and every tilt (coverage/grid.py). This bench measures what
+leaving one of them out does to the calibration and to E, on captures that did show it: after the
+replay (`run_replay`) and before the final solve, every kept, reserve and repeat view that counts
+for the dropped cell -- a range ("near", "far") or a tilt cell ("steep_x", "bottom_away", ...) --
+is removed, judged by the true pose and the true lens's ranges, so the bench's choice does not
+depend on the solve it judges. Reported per render and drop: views left, what the final coverage
 misses, E over the covered region and over the whole image, the true error over the capture's
 covered region and over the whole image, the verdict, and the true error over E (honest near 1).
 
-    .venv/bin/python bench/range_ablation.py [careful720_png_s101 ...]   # default: all of bench/cache
+    .venv/bin/python bench/coverage_ablation.py [--drop near far steep_x ...] [careful720_png_s101 ...]
 
-Writes bench/results/range_ablation.md. Renders are not made here (bench/renders.py does that).
+Default: near and far, every render in bench/cache. Writes bench/results/coverage_ablation.md (the
+rows of renders and drops not rerun are kept). Renders are not made here (bench/renders.py does that).
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -31,6 +34,8 @@ from renders import CACHE, capture_path  # noqa: E402
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.candidates import ranges_for  # noqa: E402
+from calibcoach.coverage.grid import tilt_cells  # noqa: E402
+from calibcoach.drivers.geometry import tilt_against_sight_deg  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
@@ -38,37 +43,38 @@ HEADER = ("| render | dropped | views | missing | E covered | E whole image | tr
           "| true / E | verdict |\n|---|---|---|---|---|---|---|---|---|---|")
 
 
-def true_range_cells(truth, session) -> dict[int, str]:
-    """frame index -> 'near' / 'mid' / 'far' of its true board centre under the true lens's ranges."""
+def true_cells(truth, session) -> dict[int, set[str]]:
+    """frame index -> the range cell and tilt cells its true pose counts for, under the true lens's ranges."""
     ranges = ranges_for(truth.camera, session.geometry)
     cells = {}
     for index, rvec, tvec in truth.poses:
         rotation, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
         centre = rotation @ session.geometry.centre_m + np.asarray(tvec, np.float64).ravel()
-        cells[int(index)] = ranges.cell(float(np.linalg.norm(centre)))
+        tilt, tilt_x, tilt_y = tilt_against_sight_deg(rotation[:, 2], centre)
+        cells[int(index)] = {ranges.cell(float(np.linalg.norm(centre))), *tilt_cells(tilt, tilt_x, tilt_y)}
     return cells
 
 
-def drop_range(session, cells: dict[int, str], dropped: str) -> None:
-    """Take every view whose board centre is in range `dropped` out of what the final solve is offered."""
+def drop_views(session, cells: dict[int, set[str]], dropped: str) -> None:
+    """Take every view that counts for cell `dropped` out of what the final solve is offered."""
     def keep(view) -> bool:
-        return cells.get(view.frame_index) != dropped
+        return dropped not in cells.get(view.frame_index, set())
     session.views = [v for v in session.views if keep(v)]
     session._reserve = [(v, q) for v, q in session._reserve if keep(v)]
     session._repeats = [v for v in session._repeats if keep(v)]
 
 
-def rows(name: str) -> list[str]:
+def rows(name: str, drops: list[str]) -> list[str]:
     cell, seed = name.rsplit("_s", 1)
     path = capture_path(cell, int(seed))
     truth = read_truth(CACHE / name)
     detections, _seconds = detect_all(path)
     yardstick = [d.corners_px for _i, d in sorted(detections.items()) if d.corner_count >= 6]
     made = []
-    for dropped in ("-", "near", "far"):
+    for dropped in ["-", *drops]:
         session, _stats = run_replay(open_source(path), BoardSpec())
         if dropped != "-":
-            drop_range(session, true_range_cells(truth, session), dropped)
+            drop_views(session, true_cells(truth, session), dropped)
         try:
             result = session.finish()
         except Exception as exc:  # noqa: BLE001 - a bench row says what went wrong
@@ -85,19 +91,29 @@ def rows(name: str) -> list[str]:
     return made
 
 
-PREAMBLE = "# What a missing range costs\n\n`bench/range_ablation.py` (E in px, errors in px against the lens truth).\n\n"
+PREAMBLE = "# What a missing range or tilt costs\n\n`bench/coverage_ablation.py` (E in px, errors in px against the lens truth).\n\n"
+
+
+def _order(line: str) -> tuple[str, int, str]:
+    render, dropped = line.split(" | ")[0], line.split(" | ")[1]
+    return render, ("-", "near", "far").index(dropped) if dropped in ("-", "near", "far") else 3, dropped
 
 
 def main() -> None:
-    names = sys.argv[1:] or sorted(p.name for p in CACHE.iterdir() if (p / "truth.json").exists())
-    made = [r for name in names for r in rows(name)]
-    out = ROOT / "results" / "range_ablation.md"
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--drop", nargs="+", default=["near", "far"], help="cells whose views are taken out, one at a time")
+    parser.add_argument("renders", nargs="*", help="cached renders (default: all of bench/cache)")
+    args = parser.parse_args()
+    names = args.renders or sorted(p.name for p in CACHE.iterdir() if (p / "truth.json").exists())
+    made = [r for name in names for r in rows(name, args.drop)]
+    out = ROOT / "results" / "coverage_ablation.md"
     # what was written before: the text above the table, its rows, the reading below it; the rows of
-    # renders not rerun here are kept (renders come and go from bench/cache)
+    # renders and drops not rerun here are kept (renders come and go from bench/cache)
     before, _, rest = (out.read_text() if out.exists() else PREAMBLE).partition(HEADER + "\n")
     old_rows, _, reading = rest.partition("\n\n")
-    kept = [line for line in old_rows.splitlines() if line.startswith("| ") and line.split(" | ")[0][2:] not in names]
-    table = sorted(kept + made, key=lambda line: (line.split(" | ")[0], ("-", "near", "far").index(line.split(" | ")[1])))
+    rerun = {(line.split(" | ")[0], line.split(" | ")[1]) for line in made}
+    kept = [line for line in old_rows.splitlines() if line.startswith("| ") and (line.split(" | ")[0], line.split(" | ")[1]) not in rerun]
+    table = sorted(kept + made, key=_order)
     out.write_text(before + HEADER + "\n" + "\n".join(table) + "\n" + ("\n" + reading if reading else ""))
     print(f"wrote {out}")
 
