@@ -1,11 +1,11 @@
 """When short coverage is trusted: E over the whole image against the truth over the whole image.
 
 The verdict (app/solve/verdict.py) trusts a capture whose coverage is short of 85% when every tilt
-was shown (only image regions or a range are missing: bench/coverage_ablation.py for the range) and E
-over the whole image a board can be seen in -- the model's extrapolation into the missing regions --
-is within the trust bound. This bench shows, for each render already in
-bench/cache (or those named), what that rule sees and what the truth says: coverage and what is
-missing, E over the covered region and over the whole image, and the true error over each.
+was shown (only image regions or a range are missing: bench/coverage_ablation.py for the range) and
+E over the whole image a board can be seen in -- the model's extrapolation into what is missing --
+is within the trust bound. This bench shows, for each render already in bench/cache (or those
+named), what that rule sees and what the truth says: coverage and what is missing, E over the
+covered region and over the whole image, and the true error over each.
 
     .venv/bin/python bench/coverage_trust.py [messy720_mjpg_s101 ...]
 

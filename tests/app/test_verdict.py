@@ -124,7 +124,7 @@ def test_coverage_below_its_bound_is_not_trusted_whatever_the_rms() -> None:
 REGIONS_ONLY = {"regions": [(0, 5, 0.0), (1, 5, 0.0), (2, 5, 0.0)], "tilts": [], "distances": []}
 
 
-def test_missing_regions_the_model_extrapolates_into_within_the_trust_bound_are_trusted() -> None:
+def test_missing_regions_or_a_range_the_model_extrapolates_into_within_the_trust_bound_are_trusted() -> None:
     """A capture that never reached some image regions but showed every tilt is judged by E over the whole image:
     the model's extrapolation into the regions is held to the trust bound E over the covered region is."""
     def short(whole: float | None, missing=REGIONS_ONLY, noise=0.05):
