@@ -79,6 +79,7 @@ def rows(name: str, drops: list[str]) -> list[str]:
             result = session.finish()
         except Exception as exc:  # noqa: BLE001 - a bench row says what went wrong
             made.append(f"| {name} | {dropped} | - | failed: {str(exc)[:60]} | | | | | | |")
+            print(made[-1], flush=True)
             continue
         u, cov = result.uncertainty, result.coverage
         missing = cov.summary()["missing"]
