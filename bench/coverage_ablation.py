@@ -28,15 +28,14 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
 from accuracy import score, whole_image_error  # noqa: E402  (bench/accuracy.py)
-from heldout import detect_all  # noqa: E402
-from renders import CACHE, capture_path  # noqa: E402
+from heldout import cached_capture  # noqa: E402
+from renders import cached_renders  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.coverage.candidates import ranges_for  # noqa: E402
 from calibcoach.coverage.grid import tilt_cells  # noqa: E402
 from calibcoach.drivers.geometry import tilt_against_sight_deg  # noqa: E402
-from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 HEADER = ("| render | dropped | views | missing | E covered | E whole image | true error covered | true error whole image "
@@ -65,11 +64,7 @@ def drop_views(session, cells: dict[int, set[str]], dropped: str) -> None:
 
 
 def rows(name: str, drops: list[str]) -> list[str]:
-    cell, seed = name.rsplit("_s", 1)
-    path = capture_path(cell, int(seed))
-    truth = read_truth(CACHE / name)
-    detections, _seconds = detect_all(path)
-    yardstick = [d.corners_px for _i, d in sorted(detections.items()) if d.corner_count >= 6]
+    path, truth, yardstick = cached_capture(name)
     made = []
     for dropped in ["-", *drops]:
         session, _stats = run_replay(open_source(path), BoardSpec())
@@ -105,7 +100,7 @@ def main() -> None:
     parser.add_argument("--drop", nargs="+", default=["near", "far"], help="cells whose views are taken out, one at a time")
     parser.add_argument("renders", nargs="*", help="cached renders (default: all of bench/cache)")
     args = parser.parse_args()
-    names = args.renders or sorted(p.name for p in CACHE.iterdir() if (p / "truth.json").exists())
+    names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
     made = [r for name in names for r in rows(name, args.drop)]
     out = ROOT / "results" / "coverage_ablation.md"
     # what was written before: the text above the table, its rows, the reading below it; the rows of

@@ -21,12 +21,11 @@ ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
 from accuracy import score, whole_image_error  # noqa: E402  (bench/accuracy.py)
-from heldout import detect_all  # noqa: E402
-from renders import CACHE, capture_path  # noqa: E402
+from heldout import cached_capture  # noqa: E402
+from renders import cached_renders  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
-from calibcoach.drivers.recording import read_truth  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
 HEADER = ("| render | coverage | missing | E covered | E whole image | true error covered | true error whole image | verdict |\n"
@@ -34,11 +33,8 @@ HEADER = ("| render | coverage | missing | E covered | E whole image | true erro
 
 
 def row(name: str) -> str:
-    cell, seed = name.rsplit("_s", 1)
-    path = capture_path(cell, int(seed))
-    truth = read_truth(CACHE / name).camera
-    detections, _seconds = detect_all(path)
-    yardstick = [d.corners_px for _i, d in sorted(detections.items()) if d.corner_count >= 6]
+    path, recorded, yardstick = cached_capture(name)
+    truth = recorded.camera
     session, _stats = run_replay(open_source(path), BoardSpec())
     result = session.finish()
     u, cov = result.uncertainty, result.coverage
@@ -51,7 +47,7 @@ def row(name: str) -> str:
 
 
 def main() -> None:
-    names = sys.argv[1:] or sorted(p.name for p in CACHE.iterdir() if p.is_dir() and "_s" in p.name)
+    names = sys.argv[1:] or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
     rows = []
     for name in names:
         rows.append(row(name))

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from renders import CACHE, detected_frames  # noqa: E402 - bench modules beside this one
 
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
-from calibcoach.coverage.corner_refine import grid_neighbours, in_general_position  # noqa: E402
+from calibcoach.coverage.corner_refine import board_grid, grid_neighbours, in_general_position  # noqa: E402
 from calibcoach.coverage.corner_symmetry import refine_by_symmetry  # noqa: E402
 from calibcoach.coverage.sharpness import edge_blur  # noqa: E402
 from calibcoach.drivers.recording import read_truth  # noqa: E402
@@ -46,7 +46,7 @@ def compare(name: str, *, every: int) -> str:
         board = detection.object_points_m.astype(np.float64)
         blur = edge_blur(grey, corners, board).blur_px
         blur = blur if np.isfinite(blur) else None
-        grid = np.rint(board[:, :2] / (spec.square_mm / 1000.0)).astype(np.int64)
+        grid = board_grid(board, spec.square_mm / 1000.0)
         determined = in_general_position(grid_neighbours(grid) >= 0)
         fitted = refine_by_symmetry(grey, corners, board, spec, blur_sigma_px=blur)
         moved = np.any(fitted != corners, axis=1)

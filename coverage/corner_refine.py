@@ -99,7 +99,7 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     out = corners.copy()
     if len(corners) < 4:
         return out
-    grid = np.rint(np.asarray(object_points_m, np.float64).reshape(len(corners), -1)[:, :2] / square_m).astype(np.int64)
+    grid = board_grid(object_points_m, square_m)
     coef, scale, axis_all, valid = _local_quadratic_maps(corners, grid)
     if not valid.any():
         return out
@@ -127,6 +127,12 @@ def refine_on_checker_edges(grey: np.ndarray, corners_px: np.ndarray, object_poi
     keep = solved & (np.linalg.norm(refined - start, axis=1) < MAX_SHIFT_PX)
     out[index[keep]] = refined[keep]
     return out
+
+
+def board_grid(object_points_m: np.ndarray, square_m: float) -> np.ndarray:
+    """(N, 2) int64 each corner's (column, row) on the board's grid, from its (N, 2 or 3) board position."""
+    points = np.asarray(object_points_m, np.float64)
+    return np.rint(points.reshape(len(points), -1)[:, :2] / square_m).astype(np.int64)
 
 
 def grid_neighbours(grid: np.ndarray) -> np.ndarray:

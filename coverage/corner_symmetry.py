@@ -41,6 +41,7 @@ from calibcoach.coverage.corner_refine import (
     MIN_BLUR_MARGIN_PX,
     NEIGHBOUR_OFFSETS,
     QUADRATIC_RIDGE,
+    board_grid,
     grid_neighbours,
     in_general_position,
 )
@@ -96,8 +97,7 @@ def refine_by_symmetry(grey: np.ndarray, corners_px: np.ndarray, object_points_m
     n = len(corners)
     if n < 4 or grey.ndim != 2:
         return out
-    square_m = spec.square_mm / 1000.0
-    grid = np.rint(np.asarray(object_points_m, np.float64).reshape(n, -1)[:, :2] / square_m).astype(np.int64)
+    grid = board_grid(object_points_m, spec.square_mm / 1000.0)
     homography, correction = _board_to_image_maps(corners, grid)
     if homography is None:
         return out
@@ -122,11 +122,11 @@ def _board_to_image_maps(corners: np.ndarray, grid: np.ndarray) -> tuple[np.ndar
     the lens's bending where they determine it (a small ridge holds it at zero along a border row,
     where the homography's alone is taken). Corners whose neighbours do not determine it (the edge
     of what was detected: the image's border, markers lost in a dim or smeared frame) were first
-    left as OpenCV gave them: 4% of the corners in a careful 720p replay's final solve, 12% in a dim
-    one's, 23% in a messy one's, at 3-5x the fitted corners' error. With the homography alone they are fitted as
-    well (the pairs are reflections in the image, so the map only sets the window and the masks):
-    against the truth, 0.136 -> 0.046 px per axis on a dim 720p render, 0.048 -> 0.015 careful,
-    0.037-0.071 -> 0.012-0.025 messy (bench/results/homography_alone.md).
+    left as OpenCV gave them: 4% of the corners in a careful 720p replay's final solve, 12% in a
+    dim one's, 23% in a messy one's, at 3-5x the fitted corners' error. With the homography alone
+    they are fitted as well (the pairs are reflections in the image, so the map only sets the
+    window and the masks): against the truth, 0.136 -> 0.046 px per axis on a dim 720p render,
+    0.048 -> 0.015 careful, 0.037-0.071 -> 0.012-0.025 messy (bench/results/homography_alone.md).
 
     Returns the homography (None when it cannot be fitted) and the (N, 2, 5) correction's x, y,
     x^2, xy, y^2 terms per image axis (zero where the neighbours do not determine it).
