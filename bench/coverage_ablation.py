@@ -11,7 +11,8 @@ covered region and over the whole image, the verdict, and the true error over E 
 
     .venv/bin/python bench/coverage_ablation.py [--drop near far steep_x ...] [careful720_png_s101 ...]
 
-Default: near and far, every render in bench/cache. Writes bench/results/coverage_ablation.md (the
+Default: near and far, every render in bench/cache; `--drop` with nothing after it (renders named
+before it) replays the captures as they are. Writes bench/results/coverage_ablation.md (the
 rows of renders and drops not rerun are kept). Renders are not made here (bench/renders.py does that).
 """
 
@@ -97,7 +98,8 @@ def _order(line: str) -> tuple[str, int, str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--drop", nargs="+", default=["near", "far"], help="cells whose views are taken out, one at a time")
+    parser.add_argument("--drop", nargs="*", default=["near", "far"],
+                        help="cells whose views are taken out, one at a time (none: the captures as they are)")
     parser.add_argument("renders", nargs="*", help="cached renders (default: all of bench/cache)")
     args = parser.parse_args()
     names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]

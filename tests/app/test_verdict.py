@@ -14,6 +14,7 @@ from calibcoach.app.solve.result import Calibration, DroppedFrame, UncertaintyMa
 from calibcoach.app.solve.verdict import (
     ERROR_TRUST_PX,
     MIN_COVERAGE_TO_TRUST,
+    MISSING_TILT_E_FACTOR,
     NOISY_CORNERS_PX,
     error_target_px,
     judge,
@@ -26,6 +27,7 @@ from calibcoach.drivers.lens import CameraModel
 
 SIZE = (1280, 720)
 MISSING = {"regions": [(0, 0, 0.2), (3, 5, 0.1)], "tilts": ["top_away", "steep_x"], "distances": ["far"]}
+EVERY_TILT_SHOWN = {**MISSING, "tilts": []}  # a missing tilt has a rule of its own (the last tests of the trust rule)
 
 
 def calibration(rms_px: float, dropped: int = 0) -> Calibration:
@@ -46,7 +48,7 @@ def umap(E: float, p95_covered: float | None = None, p95: float | None = None) -
 
 
 def verdict(rms=0.2, coverage=1.0, E=0.01, noise=0.1, *, size=SIZE, target=None, dropped=0, missing=None):
-    return judge(calibration(rms, dropped), coverage_completeness=coverage, coverage_missing=MISSING if missing is None else missing,
+    return judge(calibration(rms, dropped), coverage_completeness=coverage, coverage_missing=EVERY_TILT_SHOWN if missing is None else missing,
                  uncertainty=umap(E), image_size=size, noise_px=noise, target_px=target)
 
 
@@ -110,7 +112,7 @@ def test_error_target_is_half_the_noise_within_its_bounds(noise: float, size, ta
 
 
 def test_coverage_below_its_bound_is_not_trusted_whatever_the_rms() -> None:
-    low = verdict(rms=0.1, coverage=MIN_COVERAGE_TO_TRUST - 0.001)
+    low = verdict(rms=0.1, coverage=MIN_COVERAGE_TO_TRUST - 0.001, missing=MISSING)
     assert not low.trusted and low.grade == "insufficient" and low.rms_grade == "excellent"
     assert has(low, "Coverage is only 85% (needs 85%): missing 2 image regions; tilts top away, steep x; distances far.")
     assert low.reasons[-1].startswith("Do not use this calibration")
@@ -132,9 +134,9 @@ def test_missing_regions_or_a_range_the_model_extrapolates_into_within_the_trust
                      image_size=SIZE, noise_px=noise, reachable_error_px=whole)
     at = short(ERROR_TRUST_PX)
     assert at.trusted and at.grade == "good" and at.rms_grade == "excellent"  # graded down: coverage short, E above 0.025
-    assert has(at, "Coverage is only 82% (below 85%): missing 3 image regions. Every tilt was shown, and the lens "
-                   "model extrapolates into the rest: E over the whole image a board can be seen in is 0.200 px, within the "
-                   "0.200 px trust bound, so it is trusted")
+    assert has(at, "Coverage is only 82% (below 85%): missing 3 image regions.")
+    assert has(at, "Every tilt was shown, and the lens model extrapolates into the rest: E over the whole image a board "
+                   "can be seen in is 0.200 px, within the 0.200 px trust bound, so it is trusted")
     assert not has(at, "Do not use")
     above = short(ERROR_TRUST_PX + 1e-4)
     assert not above.trusted and above.grade == "insufficient"
@@ -146,12 +148,44 @@ def test_missing_regions_or_a_range_the_model_extrapolates_into_within_the_trust
     # a range missing (the fast-swinging captures never hold the board near) is judged the same way: with every tilt
     # shown E stays honest without it (bench/results/coverage_ablation.md)
     near_missing = short(0.1, missing={**REGIONS_ONLY, "distances": ["near"]})
-    assert near_missing.trusted and has(near_missing, "missing 3 image regions; distances near. Every tilt was shown")
+    assert near_missing.trusted and has(near_missing, "missing 3 image regions; distances near.")
+    assert has(near_missing, "Every tilt was shown, and the lens model extrapolates")
     assert not short(ERROR_TRUST_PX + 1e-4, missing={**REGIONS_ONLY, "distances": ["near"]}).trusted
-    # a tilt missing: refused however small the extrapolation's E (tilts separate focal length from distance)
-    for lacking in ({"tilts": ["steep_x"]}, {"tilts": ["frontal"], "distances": ["near"]}):
-        v = short(0.01, missing={**REGIONS_ONLY, **lacking})
-        assert not v.trusted and not has(v, "extrapolates") and not has(v, "Every tilt was shown")
+    # a tilt missing: judged on E widened (the next test), so a whole-image E at the bound no longer passes
+    assert not short(ERROR_TRUST_PX, missing={**REGIONS_ONLY, "tilts": ["steep_x"]}).trusted
+
+
+def test_a_missing_tilt_is_judged_on_E_widened_by_the_most_it_read_low() -> None:
+    """Without some tilt E has read up to 2.2x low on the bench, so both E over the covered region and E over
+    the whole image are judged at MISSING_TILT_E_FACTOR times their value, whatever the coverage."""
+    lacking = {**REGIONS_ONLY, "tilts": ["steep_x", "bottom_away"]}
+
+    def judged(coverage: float, E: float, whole: float | None, missing=lacking):
+        return judge(calibration(0.1), coverage_completeness=coverage, coverage_missing=missing, uncertainty=umap(E),
+                     image_size=SIZE, noise_px=0.05, reachable_error_px=whole)
+    bound = ERROR_TRUST_PX / MISSING_TILT_E_FACTOR
+    at = judged(0.7, 0.04, bound)
+    assert at.trusted and at.grade == "good" and at.rms_grade == "excellent"
+    assert has(at, "No view showed the steep x, bottom away tilts: tilted views separate focal length from distance, "
+                   "and without one E has read up to 2.2x low on the bench, so E is judged at 2.5x its value here.")
+    assert has(at, "The lens model extrapolates into the rest: E over the whole image a board can be seen in is "
+                   "0.080 px (0.200 px as judged), within the 0.200 px trust bound, so it is trusted")
+    assert has(at, "covered is 0.040 px (0.100 px as judged)") and not has(at, "Every tilt was shown")
+    above = judged(0.7, 0.04, bound + 1e-4)
+    assert not above.trusted and above.grade == "insufficient"
+    assert has(above, "The model's extrapolation into the rest is not pinned down: E over the whole image a board can "
+                      "be seen in is 0.080 px (0.200 px as judged), above the 0.200 px trust bound.")
+    assert above.reasons[-1].startswith("Do not use this calibration: capture the missing views")
+    # E over the covered region is widened too
+    assert judged(0.7, bound, bound).trusted and not judged(0.7, bound + 1e-4, bound).trusted
+    # with enough coverage a missing tilt is judged the same way (it was trusted on E alone before)
+    assert judged(0.9, 0.04, bound).trusted and not judged(0.9, 0.04, bound + 1e-4).trusted
+    assert not judged(0.9, 0.04, None).trusted  # no whole-image E: refused
+    one = judged(0.9, 0.04, bound, missing={**REGIONS_ONLY, "tilts": ["steep_y"]})
+    assert has(one, "No view showed the steep y tilt: ")
+    # every tilt shown: E as it is
+    assert judged(0.7, 0.04, bound + 1e-4, missing=REGIONS_ONLY).trusted
+    assert judged(0.9, 0.04, None, missing=REGIONS_ONLY).trusted
 
 
 def test_expected_error_where_is_the_rms_over_the_marked_points() -> None:
