@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT))
 from accuracy import score, whole_image_error  # noqa: E402  (bench/accuracy.py)
 from heldout import cached_capture  # noqa: E402
 from renders import cached_renders  # noqa: E402
+from results_table import write_merged  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
@@ -105,14 +106,7 @@ def main() -> None:
     names = args.renders or [f"{cell}_s{seed}" for cell, seed in cached_renders()]
     made = [r for name in names for r in rows(name, args.drop)]
     out = ROOT / "results" / "coverage_ablation.md"
-    # what was written before: the text above the table, its rows, the reading below it; the rows of
-    # renders and drops not rerun here are kept (renders come and go from bench/cache)
-    before, _, rest = (out.read_text() if out.exists() else PREAMBLE).partition(HEADER + "\n")
-    old_rows, _, reading = rest.partition("\n\n")
-    rerun = {(line.split(" | ")[0], line.split(" | ")[1]) for line in made}
-    kept = [line for line in old_rows.splitlines() if line.startswith("| ") and (line.split(" | ")[0], line.split(" | ")[1]) not in rerun]
-    table = sorted(kept + made, key=_order)
-    out.write_text(before + HEADER + "\n" + "\n".join(table) + "\n" + ("\n" + reading if reading else ""))
+    write_merged(out, PREAMBLE, HEADER, made, key=_order)
     print(f"wrote {out}")
 
 

@@ -9,7 +9,7 @@ covered region and over the whole image, and the true error over each.
 
     .venv/bin/python bench/coverage_trust.py [messy720_mjpg_s101 ...]
 
-Writes bench/results/coverage_trust.md. Renders are not made here (bench/renders.py does that).
+Writes bench/results/coverage_trust.md (the rows of renders not rerun are kept). Renders are not made here (bench/renders.py does that).
 """
 
 from __future__ import annotations
@@ -23,11 +23,14 @@ sys.path.insert(0, str(ROOT))
 from accuracy import score, whole_image_error  # noqa: E402  (bench/accuracy.py)
 from heldout import cached_capture  # noqa: E402
 from renders import cached_renders  # noqa: E402
+from results_table import write_merged  # noqa: E402
 
 from calibcoach.app.replay import run_replay  # noqa: E402
 from calibcoach.coverage.board import BoardSpec  # noqa: E402
 from calibcoach.drivers.replay import open_source  # noqa: E402
 
+PREAMBLE = ("# Short coverage, E over the whole image, and the truth\n\n`bench/coverage_trust.py` on the renders in "
+            "bench/cache (E in px, errors in px against the lens truth).\n\n")
 HEADER = ("| render | coverage | missing | E covered | E whole image | true error covered | true error whole image | verdict |\n"
           "|---|---|---|---|---|---|---|---|")
 
@@ -53,9 +56,7 @@ def main() -> None:
         rows.append(row(name))
         print(rows[-1], flush=True)
     out = ROOT / "results" / "coverage_trust.md"
-    out.write_text("# Short coverage, E over the whole image, and the truth\n\n"
-                   "`bench/coverage_trust.py` on the renders in bench/cache (E in px, errors in px against the lens truth).\n\n"
-                   + HEADER + "\n" + "\n".join(rows) + "\n")
+    write_merged(out, PREAMBLE, HEADER, rows, key=lambda line: (line.split(" | ")[0],))
     print(f"wrote {out}")
 
 
