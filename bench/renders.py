@@ -100,6 +100,9 @@ HELD_OUT_SEEDS = (106, 107, 108, 109, 110)
 # A second such batch, for the capture styles the first one left out (first used 2026-12-06, 09:10):
 # whether the held-frame scan's cost against `--every-frame` on the first batch was the scan or the draw.
 HELD_OUT_SEEDS_2 = (111, 112, 113)
+# A third, rendered after the verdict's missing-tilt factor was chosen on the seeds above (2026-12-06,
+# second session; bench/missing_tilt_factor.py), for the fast-swinging hands that lack tilts.
+HELD_OUT_SEEDS_3 = (114, 115, 116, 117, 118, 119)
 
 
 def cached_renders() -> list[tuple[str, int]]:
@@ -177,8 +180,8 @@ def render(name: str, seed: int) -> Path:
 if __name__ == "__main__":
     import sys
 
-    # renders.py [--held-out | --held-out-2] [CELL ...]: every cell by default, the bench's seeds unless held out
-    batches = {"--held-out": HELD_OUT_SEEDS, "--held-out-2": HELD_OUT_SEEDS_2}
+    # renders.py [--held-out | --held-out-2 | --held-out-3] [CELL ...]: every cell by default, the bench's seeds unless held out
+    batches = {"--held-out": HELD_OUT_SEEDS, "--held-out-2": HELD_OUT_SEEDS_2, "--held-out-3": HELD_OUT_SEEDS_3}
     chosen = [batches[a] for a in sys.argv[1:] if a in batches]
     names = [a for a in sys.argv[1:] if a not in batches] or list(CELLS)
     for seed in chosen[0] if chosen else SEEDS:
