@@ -128,7 +128,6 @@ def judge(
         f"RMS reprojection error {calibration.rms_px:.3f} px: {grade_rms} by the method's table "
         f"(< {thresholds[0]} excellent, < {thresholds[1]} good, < {thresholds[2]} acceptable at this resolution)."
     ]
-    trusted = True
     trust_limit = max(ERROR_TRUST_PX * max(resolution_scale(image_size), 0.5), noise_px)
     coverage_short = coverage_completeness < MIN_COVERAGE_TO_TRUST
     missing_tilts = list(coverage_missing.get("tilts") or [])
@@ -153,17 +152,16 @@ def judge(
     whole = "E over the whole image a board can be seen in"
     if needs_extrapolation and judged_reach is not None:
         said = f"{reachable_error_px:.3f} px" + (f" ({judged_reach:.3f} px as judged)" if missing_tilts else "")
-        lead = "Every tilt was shown, and the" if not missing_tilts else "The"
         if extrapolated:
+            lead = "The" if missing_tilts else "Every tilt was shown, and the"
             reasons.append(f"{lead} lens model extrapolates into the rest: {whole} is {said}, within the "
                            f"{trust_limit:.3f} px trust bound, so it is trusted; capture those views if you need them "
                            "measured rather than extrapolated.")
         else:
-            lead = "Every tilt was shown, but the" if not missing_tilts else "The"
+            lead = "The" if missing_tilts else "Every tilt was shown, but the"
             reasons.append(f"{lead} model's extrapolation into the rest is not pinned down: {whole} is {said}, "
                            f"above the {trust_limit:.3f} px trust bound.")
-    if needs_extrapolation and not extrapolated:
-        trusted = False
+    trusted = extrapolated or not needs_extrapolation
     where = (f"expected projection error E over the region the board covered is {E:.3f} px"
              + (f" ({judged_E:.3f} px as judged)" if missing_tilts else "")
              + f" (p95 worst direction {uncertainty.p95_covered_px:.3f} px, whole image {uncertainty.p95_px:.3f} px)")
