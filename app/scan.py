@@ -82,11 +82,20 @@ _TRACKABLE_CHANGE = 0.1
 # frames sampled at every 8th on five renders (careful, shaky, dim, two messy), 4 showed one -- and
 # each costs a full detection (~5 ms at 720p; 0.2 s of a careful replay's CPU at every 8th).
 # Independent stills change this much between all neighbours: they are detected until the source
-# has shown itself to be footage (`_FOOTAGE_AFTER` neighbours alike).
+# has shown itself to be footage (`_FOOTAGE_AFTER` pieces of evidence: neighbours alike, or a board
+# found in two neighbouring frames at nearly the same place, see `_FOOTAGE_SHIFT`).
 _TRANSIT_CHANGE = 0.4
 _TRANSIT_SAMPLE = 8
 _TRANSIT_SAMPLE_ONCE_SEEN = 32
 _FOOTAGE_AFTER = 5
+# A board fully detected in two neighbouring frames whose corners moved at most this share of the
+# image diagonal (15 px at 720p) is footage too. Fast-swinging footage has short holds whose tremor
+# moves the thumbnails past `_TRACKABLE_CHANGE`, so alike neighbours alone came late: on a messy 720p
+# render (boards held 2-6 frames) only at frame 219 of 784, every transit before it detected and
+# judged. Its boards moved 0.7-7.6 px between neighbouring detections (p5-p95, 126 pairs; careful:
+# 0.3-3.4), while between neighbouring photos of real photo sets they moved 66 px or more (3 cameras
+# of pycamset, 1280x1024: 57 pairs, 5% of the diagonal): the bound is 5x under the closest photos.
+_FOOTAGE_SHIFT = 0.01
 _SAME_SCENE_CHANGE = 0.015  # no board and a change this small (~3 of 200 grey levels): the same empty scene
 
 
@@ -206,6 +215,8 @@ class HeldFrameScan:
     def _see(self, plan: _Plan, previous: Seen | None) -> Seen:
         seen = self._see_frame(plan, previous)
         self._board_seen = self._board_seen or seen.detection.corner_count >= MIN_FRAME_CORNERS
+        if plan.change_in > _TRACKABLE_CHANGE and previous is not None and _board_stayed(previous, seen):
+            self._continuity += 1  # alike neighbours were counted when planned; this pair was not
         return seen
 
     def _see_frame(self, plan: _Plan, previous: Seen | None) -> Seen:
@@ -272,6 +283,16 @@ class _Plan:
     transit: bool = False
     skip: bool = False  # in transit and not sampled: not detected at all
     sample_unless_seen: bool = False  # in transit: detected when seen if no board has been seen yet, else skipped
+
+
+def _board_stayed(before: Seen, after: Seen) -> bool:
+    """Both frames were detected in full, show a board, and it moved at most `_FOOTAGE_SHIFT` of the diagonal."""
+    if before.skipped or after.skipped or before.tracked_from is not None or after.tracked_from is not None:
+        return False
+    if min(before.detection.corner_count, after.detection.corner_count) < MIN_FRAME_CORNERS:
+        return False
+    width, height = after.frame.image_size
+    return board_shift_px(before.detection, after.detection) <= _FOOTAGE_SHIFT * float(np.hypot(width, height))
 
 
 def board_shift_px(before: Detection, after: Detection) -> float:

@@ -200,6 +200,29 @@ def test_a_fast_transit_of_footage_is_sampled_and_never_used(recordings_dir: Pat
     assert not any(s.skipped or s.tracked_from is not None for s in dense)
 
 
+def test_a_board_found_again_nearby_shows_footage_where_its_tremor_hides_the_likeness(recordings_dir: Path, tmp_path: Path,
+                                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # A fast-swinging hand: the board shakes 6 px a frame (past `_TRACKABLE_CHANGE`: no two frames
+    # alike), then sweeps 40 px a frame. Found again a few px from where it was, frame after frame,
+    # the board shows the source to be footage, so the sweep is a transit; taken for independent
+    # stills (as before the board counted), every frame of it would be detected and judged.
+    grey = _demo_grey(recordings_dir, 0)
+    rng = np.random.default_rng(9)
+    shaky = [_shifted(grey, 6.0 * (k % 2), 6.0 * (k // 2 % 2), rng) for k in range(10)]
+    sweep = [_shifted(grey, 40.0 * (k + 1), 0.0, rng) for k in range(12)]
+    folder = _write(tmp_path / "shaky", shaky + sweep)
+    changes = [scan.scene_change(thumbnail(a), thumbnail(b)) for a, b in zip(shaky, shaky[1:], strict=False)]
+    assert min(changes) > scan._TRACKABLE_CHANGE  # nothing alike: only the board can tell
+    seen = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(SETTLED), lookahead=2))
+    assert [s.frame.index for s in seen if s.in_transit] == list(range(10, 22))
+    assert not any(s.tracked_from is not None for s in seen[:10])  # each shaken frame detected in full
+    assert sum(s.skipped for s in seen) == 12 - len([i for i in range(10, 22) if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0])
+    # no evidence from the board: the same frames are all detected and judged
+    monkeypatch.setattr(scan, "_FOOTAGE_SHIFT", -1.0)
+    blind = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(SETTLED), lookahead=2))
+    assert not any(s.in_transit or s.skipped for s in blind)
+
+
 def test_a_transit_before_any_board_was_seen_is_sampled_every_8th_frame(recordings_dir: Path, tmp_path: Path) -> None:
     # Footage whose board only ever moves must still show its board (the session then says "hold it
     # still" instead of looking for a wrong board spec): until a board has been seen, every 8th frame
