@@ -49,8 +49,9 @@ from calibcoach.coverage.detector import (
     Detection,
     shared_corners,
 )
+from calibcoach.coverage.select import SelectorSettings
 from calibcoach.coverage.sharpness import percentile_spread
-from calibcoach.drivers.base import Frame, frames_ahead
+from calibcoach.drivers.base import DEFAULT_FPS, Frame, frames_ahead
 
 try:  # built by `pip install` where a C compiler is present (pyproject ext-modules, optional)
     from calibcoach.coverage._block_mean import block_means as _block_means
@@ -85,6 +86,13 @@ _TRACKABLE_CHANGE = 0.1
 # has shown itself to be footage (`_FOOTAGE_AFTER` pieces of evidence: neighbours alike, or a board
 # found in two neighbouring frames at nearly the same place, see `_FOOTAGE_SHIFT`).
 _TRANSIT_CHANGE = 0.4
+# ... and that premise holds only where the frames come fast enough: a transit's move of half a
+# thumbnail cell a frame (8 px at 720p) smears it past the selector's limit within the shortest
+# usual indoor exposure (8 ms, a quarter of a 30 fps frame) only from ~23 fps at 720p (16 fps at
+# 1080p) up. Slower footage (a 6 fps webcam video of real captures: boards 2-19 px apart from frame
+# to frame, sharp) is detected frame by frame, its speed judged by the session.
+_TRANSIT_MOVE_CELLS = 0.5
+_SHORTEST_EXPOSURE_S = 0.008
 _TRANSIT_SAMPLE = 8
 _TRANSIT_SAMPLE_ONCE_SEEN = 32
 _FOOTAGE_AFTER = 5
@@ -109,6 +117,13 @@ class Seen:
     shift_px: float | None  # tracked frames: how far the board moved since `tracked_from`, px
     in_transit: bool = False  # the scene changed fast into and out of it (see `_TRANSIT_CHANGE`): never in a solve
     skipped: bool = False  # in transit and not sampled: not detected (its detection is empty)
+
+
+def transit_smears(image_width_px: int, fps: float | None) -> bool:
+    """Whether a transit (see `_TRANSIT_CHANGE`) smears past the selector's limit at this size and frame
+    rate within `_SHORTEST_EXPOSURE_S`; `fps` None: a folder's nominal 30 fps (its timestamps')."""
+    move_px = _TRANSIT_MOVE_CELLS * image_width_px / _THUMB_SIZE[0]
+    return move_px * (fps or DEFAULT_FPS) * _SHORTEST_EXPOSURE_S >= SelectorSettings().max_smear_px
 
 
 def thumbnail(grey: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator
 
-from calibcoach.app.scan import HeldFrameScan, Seen
+from calibcoach.app.scan import HeldFrameScan, Seen, transit_smears
 from calibcoach.app.scan_process import ChildScan, fork_available
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
@@ -37,13 +37,17 @@ def detected_frames(source: FrameSource, board: BoardSpec, *, workers: int = 2,
     live session did, so every frame is detected. The scan is appended to `scans_out` so the
     caller can report how many frames were tracked.
     """
-    footage = source.info.kind in TRACKED_KINDS
+    info = source.info
+    footage = info.kind in TRACKED_KINDS
     first = settle or CharucoBoardDetector(board)
     frames: Iterator[Frame] = iter(source)  # sources decode ahead themselves (drivers/image_files.py `decoded_ahead`)
-    yield from (Seen(frame, detection, None, None) for frame, detection in _settling(frames, first))
+    width = info.image_size[0] if info.image_size else 0
+    for frame, detection in _settling(frames, first):
+        width = width or frame.image_size[0]
+        yield Seen(frame, detection, None, None)
     spec = _settled_spec(first)
     scan = HeldFrameScan(frames, lambda: CharucoBoardDetector(spec), workers=workers, track=footage and not every_frame,
-                         judge_transit=footage)
+                         judge_transit=footage and transit_smears(width, info.fps))
     if scans_out is not None:
         scans_out.append(scan)
     yield from scan

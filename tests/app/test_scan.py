@@ -25,7 +25,7 @@ from calibcoach.coverage import detector as detector_module
 from calibcoach.coverage.board import BoardSpec
 from calibcoach.coverage.detector import CharucoBoardDetector, Detection
 from calibcoach.coverage.select import SelectorSettings
-from calibcoach.drivers.replay import ImageFolderSource
+from calibcoach.drivers.replay import ImageFolderSource, open_source
 
 SETTLED = BoardSpec().with_detected(legacy=False, inverted=False)  # as a replay settles it on its first frames
 
@@ -251,6 +251,19 @@ def test_independent_stills_are_all_detected(shared_data: Path) -> None:
     seen = list(detected_frames(source, spec))
     assert len(seen) == len(list(ImageFolderSource(shared_data / "pycamset_charuco_3cam" / "2")))
     assert not any(s.tracked_from is not None or s.in_transit or s.skipped for s in seen)
+
+
+def test_slow_footage_has_no_transits_since_its_moves_do_not_smear(shared_data: Path) -> None:
+    # A webcam video at 6 fps: its boards move 2-19 px from frame to frame, past the transit change
+    # on 14 of 48 frames, yet at that rate such a move smears under a pixel in a webcam's exposure.
+    root = shared_data / "caliscope_webcam_charuco_4x5"
+    seen = list(detected_frames(open_source(root / "video" / "cam_0.mp4"), BoardSpec.from_toml(root / "charuco.toml")))
+    assert len(seen) == 48 and not any(s.in_transit or s.skipped for s in seen)
+    assert sum(s.detection.corner_count >= 6 for s in seen) >= 40  # each judged on its own
+    # the premise by size and rate: 720p from ~23 fps, 1080p from ~16 fps (a folder: its nominal 30 fps)
+    assert scan.transit_smears(1280, 30.0) and scan.transit_smears(1280, 25.0) and scan.transit_smears(1280, None)
+    assert not scan.transit_smears(1280, 20.0) and not scan.transit_smears(1280, 6.0)
+    assert scan.transit_smears(1920, 20.0) and not scan.transit_smears(1920, 15.0)
 
 
 def _held_folder(recordings_dir: Path, tmp_path: Path, views: list[int], hold: int) -> Path:
