@@ -65,6 +65,7 @@ def test_upper_percentile_is_numpys_number_bit_for_bit(pct: float) -> None:
         rng.gamma(2.0, 3.0, 100_000).astype(np.float32),  # gradient magnitudes: a long upper tail
         rng.gamma(2.0, 3.0, 777).astype(np.float64),
         np.concatenate([np.ones(5000, np.float32), [1e6]]).astype(np.float32),  # one outlier: the quarter-max guess holds too few
+        np.concatenate([np.ones(5000, np.float32), [3.0]]).astype(np.float32),  # 0.6 of the max holds too few, a quarter enough
         np.full(300, 7.5, np.float32),  # all alike
         rng.integers(0, 4, 1001).astype(np.float32),  # ties at the wanted ranks
         np.array([3.0], np.float32),
