@@ -19,7 +19,8 @@ before it is *tracked* into it (`CharucoBoardDetector.track`: the previous marke
 A frame of footage into and out of which the scene changed fast (`_TRANSIT_CHANGE`) shows a board
 in transit: it is marked so and the session rejects it as moving whatever its edges say (it
 smears, and on other renderers and real cameras its corners are biased along the motion); only
-every 8th such frame is detected at all, every 32nd once a board has been seen. The tracked
+its first and last frames (which give the frames beside it their speed) and every 8th are
+detected, every 32nd once a board has been seen. The tracked
 frames of a hold join the session's reserve when a fully detected frame of the same hold was
 judged usable and either the board moved at most the selector's smear limit into and out of them
 or their own image passes its smear and blur tests (app/replay.py).
@@ -37,7 +38,7 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -194,13 +195,13 @@ class HeldFrameScan:
                         self._lookahead = frames_ahead(frame.image.nbytes)
                     change_in = float("inf") if newest is None else scene_change(newest_thumb, thumb)
                     if newest is not None:
-                        window.append(self._plan(newest, newest_change, change_out=change_in, pool=pool))
+                        self._append(window, self._plan(newest, newest_change, change_out=change_in, pool=pool), pool)
                     newest, newest_thumb, newest_change = frame, thumb, change_in
                     while len(window) > self._lookahead:
                         previous = self._see(window.popleft(), previous)
                         yield previous
                 if newest is not None:
-                    window.append(self._plan(newest, newest_change, change_out=float("inf"), pool=pool))
+                    self._append(window, self._plan(newest, newest_change, change_out=float("inf"), pool=pool), pool)
                 while window:
                     previous = self._see(window.popleft(), previous)
                     yield previous
@@ -223,6 +224,25 @@ class HeldFrameScan:
         if not self._track or frame.index % REDETECT_EVERY == 0 or change_in > _TRACKABLE_CHANGE:
             return _Plan(frame, change_in, pool.submit(self._detect, frame), transit=transit)
         return _Plan(frame, change_in, None, transit=transit)
+
+    def _append(self, window: deque[_Plan], plan: _Plan, pool: ThreadPoolExecutor) -> None:
+        """Add `plan` after the frame before it, detecting a transit's first and last frames.
+
+        The frames either side of a judged frame give its speed (the motion hint and the transit
+        veto; app/replay.py): beside a transit frame left undetected only the other side would,
+        and at the edge of a swing that side reads the board slower than it is (a messy 720p
+        video: frames at 55-76 px/s one-sided that were at 100-136 px/s between both neighbours,
+        over the 80 px/s veto, entered the final solve: 0.026 px against the truth where
+        `--every-frame` gave 0.008). So a transit's frames next to frames that are not in transit
+        are detected (still rejected as in transit): the frames beside it are judged as
+        `--every-frame` judges them.
+        """
+        before = window[-1] if window else None
+        if before is not None and not before.transit and _unseen(plan):
+            plan = replace(plan, detection=pool.submit(self._detect, plan.frame), skip=False, sample_unless_seen=False)
+        elif before is not None and not plan.transit and _unseen(before):
+            window[-1] = replace(before, detection=pool.submit(self._detect, before.frame), skip=False, sample_unless_seen=False)
+        window.append(plan)
 
     def _detect(self, frame: Frame) -> Detection:
         return self._detector().detect(frame.grey())
@@ -298,6 +318,11 @@ class _Plan:
     transit: bool = False
     skip: bool = False  # in transit and not sampled: not detected at all
     sample_unless_seen: bool = False  # in transit: detected when seen if no board has been seen yet, else skipped
+
+
+def _unseen(plan: _Plan) -> bool:
+    """A transit frame planned not to be detected (skipped, or sampled only while no board has been seen)."""
+    return plan.transit and plan.detection is None and (plan.skip or plan.sample_unless_seen)
 
 
 def _board_stayed(before: Seen, after: Seen) -> bool:

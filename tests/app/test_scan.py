@@ -191,8 +191,10 @@ def test_a_fast_transit_of_footage_is_sampled_and_never_used(recordings_dir: Pat
     transit = [s.frame.index for s in seen if s.in_transit]
     assert transit == list(range(10, 22))  # every frame of the sweep, none of the holds
     detected_in_transit = [s.frame.index for s in seen if s.in_transit and not s.skipped]
-    # a board was seen (the hold): only every 32nd frame of a transit is detected, here none
-    assert detected_in_transit == [i for i in transit if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0] == []
+    # a board was seen (the hold): of a transit only its first and last frames (the neighbours of the
+    # holds' frames, whose speeds they give) and every 32nd frame (here none) are detected
+    assert detected_in_transit == [10, 21] and not [i for i in transit if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0]
+    assert all(s.detection.corner_count >= 6 for s in seen if s.frame.index in (10, 21))
     assert scan.skipped == len(transit) - len(detected_in_transit)
     # the same frames are in transit when every frame is detected (--every-frame), so both reject them alike
     dense = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(spec), track=False))
@@ -216,7 +218,8 @@ def test_a_board_found_again_nearby_shows_footage_where_its_tremor_hides_the_lik
     seen = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(SETTLED), lookahead=2))
     assert [s.frame.index for s in seen if s.in_transit] == list(range(10, 22))
     assert not any(s.tracked_from is not None for s in seen[:10])  # each shaken frame detected in full
-    assert sum(s.skipped for s in seen) == 12 - len([i for i in range(10, 22) if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0])
+    # detected: the sweep's first frame, beside the shaken ones (its last ends the footage: nothing beside it is judged)
+    assert [s.frame.index for s in seen[10:] if not s.skipped] == [10]
     # no evidence from the board: the same frames are all detected and judged
     monkeypatch.setattr(scan, "_FOOTAGE_SHIFT", -1.0)
     blind = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(SETTLED), lookahead=2))
@@ -232,17 +235,20 @@ def test_a_transit_before_any_board_was_seen_is_sampled_every_8th_frame(recordin
     rng = np.random.default_rng(8)
     empty = [np.clip(np.full_like(grey, 120) + rng.normal(0, 1.0, grey.shape), 0, 255).astype(np.uint8) for _ in range(10)]
     offsets = [40.0 * (k + 1) if k < 12 else 480.0 - 40.0 * (k - 11) for k in range(36)]
-    folder = _write(tmp_path / "sweep", empty + [_shifted(grey, dx, 0.0, rng) for dx in offsets])
+    sweep = [_shifted(grey, dx, 0.0, rng) for dx in offsets]
+    sweep[0] = cv2.GaussianBlur(sweep[0], (0, 0), 12.0)  # the sweep's first frame, beside the empty scene: no board readable
+    folder = _write(tmp_path / "sweep", empty + sweep)
     spec = SETTLED
     seen = list(HeldFrameScan(iter(ImageFolderSource(folder)), lambda: CharucoBoardDetector(spec)))
     transit = [s.frame.index for s in seen if s.in_transit]
     assert transit == list(range(10, 46))  # the whole sweep
     detected = [s for s in seen if s.in_transit and not s.skipped]
+    assert detected[0].frame.index == 10 and detected[0].detection.corner_count == 0  # the transit's edge, always detected
     first_board = next(s.frame.index for s in detected if s.detection.corner_count >= 6)
-    expected = [i for i in transit if i % _TRANSIT_SAMPLE == 0 and i <= first_board]
+    expected = [10] + [i for i in transit if i % _TRANSIT_SAMPLE == 0 and i <= first_board]
     expected += [i for i in transit if i % _TRANSIT_SAMPLE_ONCE_SEEN == 0 and i > first_board]
     assert [s.frame.index for s in detected] == expected
-    assert first_board == 16 and expected == [16, 32]  # 24 and 40 skipped once the board was seen at 16
+    assert first_board == 16 and expected == [10, 16, 32]  # 24 and 40 skipped once the board was seen at 16
 
 
 def test_independent_stills_are_all_detected(shared_data: Path) -> None:
