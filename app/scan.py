@@ -229,12 +229,12 @@ class HeldFrameScan:
         """Add `plan` after the frame before it, detecting a transit's first and last frames.
 
         The frames either side of a judged frame give its speed (the motion hint and the transit
-        veto; app/replay.py): beside a transit frame left undetected only the other side would,
+        veto; app/replay.py). Beside an undetected transit frame only the other side gives it,
         and at the edge of a swing that side reads the board slower than it is (a messy 720p
-        video: frames at 55-76 px/s one-sided that were at 100-136 px/s between both neighbours,
-        over the 80 px/s veto, entered the final solve: 0.026 px against the truth where
-        `--every-frame` gave 0.008). So a transit's frames next to frames that are not in transit
-        are detected (still rejected as in transit): the frames beside it are judged as
+        video: frames at 55-76 px/s one-sided, 100-136 px/s across both neighbours, over the
+        80 px/s veto, entered the final solve: 0.026 px against the truth where `--every-frame`
+        gave 0.008). So a transit's frames next to frames that are not in transit are detected
+        (and still rejected as in transit), and the frames beside them are judged as
         `--every-frame` judges them.
         """
         before = window[-1] if window else None
