@@ -119,6 +119,11 @@ class Seen:
     in_transit: bool = False  # the scene changed fast into and out of it (see `_TRANSIT_CHANGE`): never in a solve
     skipped: bool = False  # in transit and not sampled: not detected (its detection is empty)
 
+    @property
+    def detected_in_full(self) -> bool:
+        """Neither tracked nor skipped in transit: the frames the session judges."""
+        return not self.skipped and self.tracked_from is None
+
 
 def transit_smears(image_width_px: int, fps: float | None) -> bool:
     """Whether a transit (see `_TRANSIT_CHANGE`) smears past the selector's limit at this size and frame
@@ -327,7 +332,7 @@ def _unseen(plan: _Plan) -> bool:
 
 def _board_stayed(before: Seen, after: Seen) -> bool:
     """Both frames were detected in full, show a board, and it moved at most `_FOOTAGE_SHIFT` of the diagonal."""
-    if before.skipped or after.skipped or before.tracked_from is not None or after.tracked_from is not None:
+    if not (before.detected_in_full and after.detected_in_full):
         return False
     if min(before.detection.corner_count, after.detection.corner_count) < MIN_FRAME_CORNERS:
         return False

@@ -155,12 +155,7 @@ def _pixels_for_the_session(seen: Seen) -> np.ndarray:
     would convert those frames to exactly this grey. A frame skipped in transit is only counted:
     none of its pixels cross (`_produce`).
     """
-    return seen.frame.image if _judged(seen) else seen.frame.grey()
-
-
-def _judged(seen: Seen) -> bool:
-    """Whether the session judges the frame (and may show it): neither tracked nor skipped in transit."""
-    return not seen.skipped and seen.tracked_from is None
+    return seen.frame.image if seen.detected_in_full else seen.frame.grey()
 
 
 def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], sending: Any,
@@ -189,7 +184,7 @@ def _produce(make_seen: Callable[[], Iterator[Seen]], state: Callable[[], Any], 
             if grey is not None:
                 ring[slot, image.nbytes : image.nbytes + grey.nbytes] = grey.reshape(-1)
             # an MJPG frame's JPEG goes along where the session may show the frame in colour (see above)
-            encoded = frame.encoded if _judged(seen) else None
+            encoded = frame.encoded if seen.detected_in_full else None
             sending.send(("frame", slot, image.shape, grey is not None,
                           (frame.index, frame.timestamp_ns, frame.name, dict(frame.controls), encoded),
                           replace(seen, frame=None), state()))
