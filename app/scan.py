@@ -244,10 +244,14 @@ class HeldFrameScan:
         """
         before = window[-1] if window else None
         if before is not None and not before.transit and _unseen(plan):
-            plan = replace(plan, detection=pool.submit(self._detect, plan.frame), skip=False, sample_unless_seen=False)
+            plan = self._detected_ahead(plan, pool)
         elif before is not None and not plan.transit and _unseen(before):
-            window[-1] = replace(before, detection=pool.submit(self._detect, before.frame), skip=False, sample_unless_seen=False)
+            window[-1] = self._detected_ahead(before, pool)
         window.append(plan)
+
+    def _detected_ahead(self, plan: _Plan, pool: ThreadPoolExecutor) -> _Plan:
+        """`plan` with its frame's detection started (no longer skipped or merely sampled)."""
+        return replace(plan, detection=pool.submit(self._detect, plan.frame), skip=False, sample_unless_seen=False)
 
     def _detect(self, frame: Frame) -> Detection:
         return self._detector().detect(frame.grey())
